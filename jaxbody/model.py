@@ -1,0 +1,338 @@
+"""The :class:`Model`: static topology plus physical parameters as a JAX pytree.
+
+Conventions follow MuJoCo so that an imported MJCF model compares one-to-one:
+
+* body ``k`` of jaxbody is MuJoCo body ``k + 1`` (the world body is implicit);
+* ``body_pos``/``body_quat`` place the body frame in the parent's frame at the reference
+  configuration (joints at ``qpos0``); quaternions are (w, x, y, z);
+* ``body_com`` is the centre of mass in the body frame and ``body_inertia`` the full inertia
+  tensor about the centre of mass in body axes (MuJoCo's ``body_iquat``/``body_inertia``
+  combined);
+* ``joint_pos``/``joint_axis`` are the anchor and axis in the body frame; ``qpos0`` is the
+  reference configuration (hinge/slide ``ref``; identity quaternions; free body pose);
+* ``qpos_spring`` is the spring reference of joint springs (``springref``).
+
+Static structure (:class:`~jaxbody.tree.BodyTree`, :class:`~jaxbody.joints.JointLayout`)
+lives in static fields; every physical parameter is a traced array, so ``jax.grad`` reaches
+masses, centres of mass, inertias, offsets and axes.
+"""
+
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from ._types import Array, Float
+from .joints import BALL, FREE, HINGE, JOINT_KIND_NAMES, JOINT_NQ, SLIDE, JointLayout, _JointSpec
+from .tree import BodyTree
+
+__all__ = ["Model", "ModelBuilder", "validate_parameters", "quat_to_matrix_np"]
+
+
+class Model(eqx.Module):
+    """A rigid-body tree with joints (see the module docstring for conventions)."""
+
+    tree: BodyTree = eqx.field(static=True)
+    joints: JointLayout = eqx.field(static=True)
+    body_pos: Float[Array, "n_body 3"]
+    body_quat: Float[Array, "n_body 4"]
+    body_mass: Float[Array, " n_body"]
+    body_com: Float[Array, "n_body 3"]
+    body_inertia: Float[Array, "n_body 3 3"]
+    joint_pos: Float[Array, "n_joint 3"]
+    joint_axis: Float[Array, "n_joint 3"]
+    joint_stiffness: Float[Array, " n_joint"]
+    dof_armature: Float[Array, " nv"]
+    dof_damping: Float[Array, " nv"]
+    qpos0: Float[Array, " nq"]
+    qpos_spring: Float[Array, " nq"]
+    gravity: Float[Array, "3"]
+    keyframe_qpos: Float[Array, "n_key nq"]
+    keyframe_qvel: Float[Array, "n_key nv"]
+    keyframe_names: tuple[str, ...] = eqx.field(static=True, default=())
+    name: str = eqx.field(static=True, default="model")
+
+    @property
+    def n_body(self) -> int:
+        return self.tree.n_body
+
+    @property
+    def n_joint(self) -> int:
+        return self.joints.n_joint
+
+    @property
+    def nq(self) -> int:
+        return self.joints.nq
+
+    @property
+    def nv(self) -> int:
+        return self.joints.nv
+
+    @property
+    def body_names(self) -> tuple[str, ...]:
+        return self.tree.names
+
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        return self.joints.names
+
+    def body_index(self, name: str) -> int:
+        try:
+            return self.tree.names.index(name)
+        except ValueError:
+            raise KeyError(f"no body named {name!r}; bodies: {list(self.tree.names)}") from None
+
+    def joint_index(self, name: str) -> int:
+        try:
+            return self.joints.names.index(name)
+        except ValueError:
+            raise KeyError(f"no joint named {name!r}; joints: {list(self.joints.names)}") from None
+
+    def keyframe(self, name: str):
+        """``(qpos, qvel)`` of a named keyframe."""
+        try:
+            i = self.keyframe_names.index(name)
+        except ValueError:
+            raise KeyError(f"no keyframe named {name!r}; keyframes: {list(self.keyframe_names)}") from None
+        return self.keyframe_qpos[i], self.keyframe_qvel[i]
+
+    def __repr__(self):
+        return (
+            f"Model({self.name!r}: n_body={self.n_body}, n_joint={self.n_joint}, "
+            f"nq={self.nq}, nv={self.nv})"
+        )
+
+
+def quat_to_matrix_np(q) -> np.ndarray:
+    q = np.asarray(q, dtype=np.float64)
+    q = q / np.linalg.norm(q)
+    w, x, y, z = q
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def _check_finite(value, what):
+    a = np.asarray(value, dtype=np.float64)
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{what} is not finite (NaN or inf): {a.tolist()}")
+    return a
+
+
+def validate_parameters(model: Model, rtol: float = 1e-9) -> None:
+    """Check physical parameters on concrete values; raise ``ValueError`` naming the culprit.
+
+    Checks: finite values everywhere; non-negative masses; a positive subtree mass for every
+    body that moves (carries a joint); symmetric inertia tensors with non-negative principal
+    moments satisfying the triangle inequality; non-zero joint axes; non-negative armature,
+    damping and stiffness; unit-normalisable quaternions.
+    """
+    tree, joints = model.tree, model.joints
+    bn, jn = tree.names, joints.names
+    fields = [
+        "body_pos", "body_quat", "body_mass", "body_com", "body_inertia", "joint_pos",
+        "joint_axis", "joint_stiffness", "dof_armature", "dof_damping", "qpos0",
+        "qpos_spring", "gravity",
+    ]
+    expected = {
+        "body_pos": (tree.n_body, 3), "body_quat": (tree.n_body, 4), "body_mass": (tree.n_body,),
+        "body_com": (tree.n_body, 3), "body_inertia": (tree.n_body, 3, 3),
+        "joint_pos": (joints.n_joint, 3), "joint_axis": (joints.n_joint, 3),
+        "joint_stiffness": (joints.n_joint,), "dof_armature": (joints.nv,),
+        "dof_damping": (joints.nv,), "qpos0": (joints.nq,), "qpos_spring": (joints.nq,),
+        "gravity": (3,),
+    }
+    for f in fields:
+        a = np.asarray(getattr(model, f))
+        if a.shape != expected[f]:
+            raise ValueError(f"model field {f} has shape {a.shape}, expected {expected[f]}")
+        bad = ~np.isfinite(a)
+        if bad.any():
+            idx = int(np.argwhere(bad)[0][0]) if a.ndim else 0
+            owner = ""
+            if f.startswith("body_"):
+                owner = f" (body {idx}, {bn[idx]!r})"
+            elif f.startswith("joint_"):
+                owner = f" (joint {idx}, {jn[idx]!r})"
+            elif f.startswith("dof_"):
+                j = joints.dof_joint[idx]
+                owner = f" (dof {idx} of joint {j}, {jn[j]!r})"
+            raise ValueError(f"model field {f}{owner} is not finite (NaN or inf)")
+    mass = np.asarray(model.body_mass)
+    for k in range(tree.n_body):
+        if mass[k] < 0:
+            raise ValueError(f"body {k} ({bn[k]!r}): body_mass is negative ({mass[k]})")
+    sub = tree.subtree_mask.astype(np.float64) @ mass
+    for k in range(tree.n_body):
+        if joints.body_joint_count[k] > 0 and not sub[k] > 0:
+            raise ValueError(
+                f"body {k} ({bn[k]!r}) moves (has joints) but its subtree mass is "
+                f"{sub[k]}: a moving body needs positive mass"
+            )
+    inertia = np.asarray(model.body_inertia)
+    for k in range(tree.n_body):
+        I = inertia[k]
+        scale = max(np.abs(I).max(), 1e-300)
+        if np.abs(I - I.T).max() > rtol * scale + 1e-15:
+            raise ValueError(f"body {k} ({bn[k]!r}): body_inertia is not symmetric: {I.tolist()}")
+        lam = np.linalg.eigvalsh(0.5 * (I + I.T))
+        if lam[0] < -rtol * scale:
+            raise ValueError(
+                f"body {k} ({bn[k]!r}): body_inertia has a negative principal moment "
+                f"({lam.tolist()})"
+            )
+        if lam[0] + lam[1] < lam[2] * (1 - rtol) - 1e-15:
+            raise ValueError(
+                f"body {k} ({bn[k]!r}): body_inertia violates the triangle inequality "
+                f"(principal moments {lam.tolist()}: the two smaller must sum to at least the largest)"
+            )
+    axes = np.asarray(model.joint_axis)
+    for j in range(joints.n_joint):
+        if joints.type[j] in (HINGE, SLIDE) and np.linalg.norm(axes[j]) < 1e-12:
+            raise ValueError(f"joint {j} ({jn[j]!r}): joint_axis is zero")
+    for f, owner in (("dof_armature", "dof"), ("dof_damping", "dof"), ("joint_stiffness", "joint")):
+        a = np.asarray(getattr(model, f))
+        for i in np.nonzero(a < 0)[0]:
+            j = joints.dof_joint[i] if owner == "dof" else i
+            raise ValueError(f"joint {j} ({jn[j]!r}): {f} is negative ({a[i]})")
+    quats = np.asarray(model.body_quat)
+    for k in range(tree.n_body):
+        if np.linalg.norm(quats[k]) < 1e-12:
+            raise ValueError(f"body {k} ({bn[k]!r}): body_quat is zero")
+
+
+class ModelBuilder:
+    """Programmatic construction of a :class:`Model`.
+
+    Example::
+
+        b = jb.ModelBuilder(gravity=(0, 0, -9.81))
+        b.add_body("upper", mass=1.0, com=(0, 0, -0.25), inertia=(0.02, 0.02, 0.001),
+                   joints=[jb.Hinge(axis=(0, 1, 0))])
+        b.add_body("lower", parent="upper", pos=(0, 0, -0.5), mass=0.5,
+                   com=(0, 0, -0.2), inertia=(0.01, 0.01, 0.001), joints=[jb.Hinge(axis=(0, 1, 0))])
+        model = b.build()
+
+    ``inertia`` is the central inertia in body axes: 3 principal moments (diagonal), 6 values
+    ``(xx, yy, zz, xy, xz, yz)`` (MJCF ``fullinertia``) or a 3×3 matrix.
+    """
+
+    def __init__(self, gravity: Sequence[float] = (0.0, 0.0, -9.81), name: str = "model"):
+        self.gravity = _check_finite(gravity, "gravity")
+        self.name = name
+        self._bodies: list[dict] = []
+
+    def add_body(
+        self,
+        name: str,
+        parent: str | int | None = None,
+        *,
+        pos: Sequence[float] = (0.0, 0.0, 0.0),
+        quat: Sequence[float] = (1.0, 0.0, 0.0, 0.0),
+        mass: float = 0.0,
+        com: Sequence[float] = (0.0, 0.0, 0.0),
+        inertia=(0.0, 0.0, 0.0),
+        joints: Sequence[_JointSpec] = (),
+    ) -> int:
+        """Add a body; returns its index. ``parent`` is a name, an index or None (world)."""
+        names = [b["name"] for b in self._bodies]
+        if name in names:
+            raise ValueError(f"body {name!r} is defined twice")
+        if parent is None:
+            pidx = -1
+        elif isinstance(parent, str):
+            if parent not in names:
+                raise ValueError(f"body {name!r}: unknown parent body {parent!r}")
+            pidx = names.index(parent)
+        else:
+            pidx = int(parent)
+            if not -1 <= pidx < len(names):
+                raise ValueError(f"body {name!r}: unknown parent index {pidx}")
+        I = np.asarray(inertia, dtype=np.float64)
+        if I.shape == (3,):
+            I = np.diag(I)
+        elif I.shape == (6,):
+            xx, yy, zz, xy, xz, yz = I
+            I = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
+        elif I.shape != (3, 3):
+            raise ValueError(
+                f"body {name!r}: inertia must have 3, 6 or 3x3 values, got shape {I.shape}"
+            )
+        for j in joints:
+            if not isinstance(j, _JointSpec):
+                raise ValueError(f"body {name!r}: joints must be Hinge/Slide/Ball/Free, got {j!r}")
+        self._bodies.append(
+            dict(
+                name=name, parent=pidx, pos=_check_finite(pos, f"body {name!r} pos"),
+                quat=_check_finite(quat, f"body {name!r} quat"),
+                mass=float(_check_finite(mass, f"body {name!r} mass")),
+                com=_check_finite(com, f"body {name!r} com"), inertia=I, joints=list(joints),
+            )
+        )
+        return len(self._bodies) - 1
+
+    def build(self, dtype=None) -> Model:
+        """Validate and return the :class:`Model` (raises ``ValueError`` naming the culprit)."""
+        bodies = self._bodies
+        if not bodies:
+            raise ValueError("model has no bodies")
+        tree = BodyTree([b["parent"] for b in bodies], [b["name"] for b in bodies])
+        jt, jb_, jnames, jpos, jaxis, jstiff = [], [], [], [], [], []
+        arm, damp, q0, qs = [], [], [], []
+        for k, b in enumerate(bodies):
+            for i, j in enumerate(b["joints"]):
+                jt.append(j.kind)
+                jb_.append(k)
+                jnames.append(j.name or f"{b['name']}_{JOINT_KIND_NAMES[j.kind]}{i}")
+                jpos.append(_check_finite(j.pos, f"joint of body {b['name']!r} pos"))
+                ax = _check_finite(j.axis, f"joint of body {b['name']!r} axis")
+                nrm = np.linalg.norm(ax)
+                if j.kind in (HINGE, SLIDE) and nrm < 1e-12:
+                    raise ValueError(f"joint {jnames[-1]!r} of body {b['name']!r}: axis is zero")
+                jaxis.append(ax / nrm if nrm > 0 else ax)
+                jstiff.append(float(j.stiffness))
+                nv = {FREE: 6, BALL: 3, SLIDE: 1, HINGE: 1}[j.kind]
+                arm += [float(j.armature)] * nv
+                damp += [float(j.damping)] * nv
+                if j.kind in (HINGE, SLIDE):
+                    q0.append(float(j.ref))
+                    qs.append(float(j.springref))
+                elif j.kind == BALL:
+                    q0 += [1.0, 0.0, 0.0, 0.0]
+                    qs += [1.0, 0.0, 0.0, 0.0]
+                else:
+                    pose = list(b["pos"]) + list(np.asarray(b["quat"]) / np.linalg.norm(b["quat"]))
+                    q0 += pose
+                    qs += pose
+        layout = JointLayout(tree, jt, jb_, jnames)
+        assert len(q0) == layout.nq and len(arm) == layout.nv
+        f = dtype or jnp.result_type(float)
+        arr = lambda x, shape: jnp.asarray(np.asarray(x, dtype=np.float64).reshape(shape), dtype=f)
+        nb, nj = tree.n_body, layout.n_joint
+        model = Model(
+            tree=tree,
+            joints=layout,
+            body_pos=arr([b["pos"] for b in bodies], (nb, 3)),
+            body_quat=arr([np.asarray(b["quat"]) / np.linalg.norm(b["quat"]) for b in bodies], (nb, 4)),
+            body_mass=arr([b["mass"] for b in bodies], (nb,)),
+            body_com=arr([b["com"] for b in bodies], (nb, 3)),
+            body_inertia=arr([b["inertia"] for b in bodies], (nb, 3, 3)),
+            joint_pos=arr(jpos, (nj, 3)),
+            joint_axis=arr(jaxis, (nj, 3)),
+            joint_stiffness=arr(jstiff, (nj,)),
+            dof_armature=arr(arm, (layout.nv,)),
+            dof_damping=arr(damp, (layout.nv,)),
+            qpos0=arr(q0, (layout.nq,)),
+            qpos_spring=arr(qs, (layout.nq,)),
+            gravity=arr(self.gravity, (3,)),
+            keyframe_qpos=jnp.zeros((0, layout.nq), f),
+            keyframe_qvel=jnp.zeros((0, layout.nv), f),
+            name=self.name,
+        )
+        validate_parameters(model)
+        return model
