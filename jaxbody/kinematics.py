@@ -1,0 +1,415 @@
+"""Kinematics of a :class:`~jaxbody.model.Model`: frames, base points, DoF motions, velocities.
+
+Frames are composed from the root down by pointer jumping over the static frame tree of
+:class:`~jaxbody.joints.JointLayout` (one node for each body's fixed offset, one per joint),
+so the trace does not grow with the number of bodies. MuJoCo's conventions are reproduced
+exactly (``mj_kinematics``): hinge and slide joints act relative to ``qpos0``, the joint
+anchor is fixed in the frame that precedes the joint, a ball or free joint's angular
+velocity is expressed in the body frame.
+
+Points attached to each body ``k`` (spec §2):
+
+* base point ``O_0k`` — fixed in the parent: the anchor of the body's first joint (MuJoCo
+  ``xanchor``); for a body without joints its origin; for a free body its origin, treated as
+  the origin of a translating carrier frame (spec Cor. 1);
+* pole ``O_k`` — fixed in body ``k``, coinciding with ``O_0k`` in the reference pose of the
+  body's own joints. ``rho_k = O_k - O_0k`` is non-zero only for sliding or off-centre
+  relative motion.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._types import Array, Float
+from .joints import BALL, FREE, HINGE, SLIDE
+from .model import Model
+
+__all__ = [
+    "Kinematics",
+    "BodyMotion",
+    "quat_to_matrix",
+    "quat_multiply",
+    "axis_angle_matrix",
+    "forward_kinematics",
+    "dof_motion_at",
+    "body_velocities",
+    "body_accelerations",
+    "point_velocity",
+    "point_acceleration",
+    "qpos_rate",
+    "integrate_qpos",
+    "normalize_qpos",
+]
+
+
+def cross(a, b):
+    return jnp.cross(a, b)
+
+
+def quat_to_matrix(q: Float[Array, "*b 4"]) -> Float[Array, "*b 3 3"]:
+    """Rotation matrix of a quaternion (w, x, y, z), normalised first (gradient-safe at 0)."""
+    n2 = jnp.sum(q * q, axis=-1, keepdims=True)
+    safe = jnp.where(n2 > 0, n2, 1.0)
+    q = q / jnp.sqrt(safe)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    r = jnp.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        axis=-1,
+    )
+    return r.reshape(q.shape[:-1] + (3, 3))
+
+
+def quat_multiply(a: Float[Array, "*b 4"], b: Float[Array, "*b 4"]) -> Float[Array, "*b 4"]:
+    """Hamilton product ``a ⊗ b`` of (w, x, y, z) quaternions."""
+    aw, ax, ay, az = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
+    bw, bx, by, bz = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
+    return jnp.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        axis=-1,
+    )
+
+
+def axis_angle_matrix(axis: Float[Array, "*b 3"], angle: Float[Array, "*b"]) -> Float[Array, "*b 3 3"]:
+    """Rodrigues' rotation about a unit ``axis`` by ``angle``."""
+    c, s = jnp.cos(angle)[..., None, None], jnp.sin(angle)[..., None, None]
+    x, y, z = axis[..., 0], axis[..., 1], axis[..., 2]
+    zero = jnp.zeros_like(x)
+    k = jnp.stack([zero, -z, y, z, zero, -x, -y, x, zero], axis=-1).reshape(axis.shape[:-1] + (3, 3))
+    eye = jnp.eye(3, dtype=axis.dtype)
+    return eye + s * k + (1 - c) * (k @ k)
+
+
+class Kinematics(eqx.Module):
+    """Positions and orientations at one configuration (all world frame).
+
+    Attributes:
+        body_rotation: rotation matrix of each body frame.
+        body_position: origin of each body frame (MuJoCo ``xpos``).
+        base_point: ``O_0k`` (see module docstring).
+        pole: ``O_k``.
+        com: centre of mass ``C_k`` (MuJoCo ``xipos``).
+        central_inertia: ``I_Ck`` about the CM in world axes.
+        dof_angular, dof_linear, dof_anchor: DoF ``d`` moves its body with angular velocity
+            ``dof_angular[d]`` and gives the point ``X`` the velocity
+            ``dof_linear[d] + dof_angular[d] × (X - dof_anchor[d])`` per unit rate.
+    """
+
+    body_rotation: Float[Array, "n_body 3 3"]
+    body_position: Float[Array, "n_body 3"]
+    base_point: Float[Array, "n_body 3"]
+    pole: Float[Array, "n_body 3"]
+    com: Float[Array, "n_body 3"]
+    central_inertia: Float[Array, "n_body 3 3"]
+    dof_angular: Float[Array, "nv 3"]
+    dof_linear: Float[Array, "nv 3"]
+    dof_anchor: Float[Array, "nv 3"]
+
+
+def _idx(seq):
+    return np.asarray(seq, dtype=np.int32)
+
+
+def _local_frames(model: Model, q):
+    """Local rotation/translation of every frame-tree node (offset nodes and joint nodes)."""
+    joints = model.joints
+    dtype = model.body_pos.dtype
+    n_node = joints.frame_tree.n_body
+    R = jnp.zeros((n_node, 3, 3), dtype)
+    t = jnp.zeros((n_node, 3), dtype)
+    nb = model.n_body
+    free_body = np.asarray(joints.body_is_free, dtype=bool)
+    off = _idx(joints.body_offset_node)
+    Roff = quat_to_matrix(model.body_quat)
+    Roff = jnp.where(free_body[:, None, None], jnp.eye(3, dtype=dtype), Roff)
+    toff = jnp.where(free_body[:, None], 0.0, model.body_pos)
+    R = R.at[off].set(Roff)
+    t = t.at[off].set(toff)
+    types = np.asarray(joints.type, dtype=np.int64)
+    qadr = np.asarray(joints.qposadr, dtype=np.int64)
+    jnode = np.asarray(joints.joint_node, dtype=np.int64)
+    for kind in (HINGE, SLIDE, BALL, FREE):  # static loop over joint kinds
+        js = np.nonzero(types == kind)[0]
+        if js.size == 0:
+            continue
+        a = qadr[js]
+        p = model.joint_pos[js]
+        if kind == HINGE:
+            Rj = axis_angle_matrix(model.joint_axis[js], q[a] - model.qpos0[a])
+            tj = p - jnp.einsum("nij,nj->ni", Rj, p)
+        elif kind == SLIDE:
+            Rj = jnp.broadcast_to(jnp.eye(3, dtype=dtype), (js.size, 3, 3))
+            tj = model.joint_axis[js] * (q[a] - model.qpos0[a])[:, None]
+        elif kind == BALL:
+            Rj = quat_to_matrix(q[a[:, None] + np.arange(4)])
+            tj = p - jnp.einsum("nij,nj->ni", Rj, p)
+        else:
+            Rj = quat_to_matrix(q[a[:, None] + 3 + np.arange(4)])
+            tj = q[a[:, None] + np.arange(3)]
+        R = R.at[jnode[js]].set(Rj)
+        t = t.at[jnode[js]].set(tj)
+    del nb
+    return R, t
+
+
+def _compose(outer, inner):
+    Ro, to = outer
+    Ri, ti = inner
+    return Ro @ Ri, jnp.einsum("nij,nj->ni", Ro, ti) + to
+
+
+def forward_kinematics(model: Model, q: Float[Array, " nq"]) -> Kinematics:
+    """World frames, base points, poles, CMs and DoF motions at configuration ``q``.
+
+    Follows MuJoCo's ``mj_kinematics`` and ``mj_comPos`` conventions (DESIGN.md).
+    """
+    joints = model.joints
+    q = jnp.asarray(q, model.body_pos.dtype)
+    if q.shape != (model.nq,):
+        raise ValueError(f"q has shape {q.shape}, expected ({model.nq},)")
+    R_loc, t_loc = _local_frames(model, q)
+    R_w, t_w = joints.frame_tree.accumulate_from_root((R_loc, t_loc), _compose)
+    last = _idx(joints.body_last_node)
+    body_R, body_x = R_w[last], t_w[last]
+    com = body_x + jnp.einsum("nij,nj->ni", body_R, model.body_com)
+    I_c = body_R @ model.body_inertia @ jnp.swapaxes(body_R, -1, -2)
+
+    nj = model.n_joint
+    dtype = body_x.dtype
+    if nj:
+        pre = _idx(joints.joint_pre_node)
+        jbody = _idx(joints.body)
+        types = np.asarray(joints.type)
+        is_free = types == FREE
+        anchor = jnp.einsum("nij,nj->ni", R_w[pre], model.joint_pos) + t_w[pre]
+        anchor = jnp.where(is_free[:, None], body_x[jbody], anchor)
+        axis = jnp.einsum("nij,nj->ni", R_w[pre], model.joint_axis)
+    else:
+        anchor = jnp.zeros((0, 3), dtype)
+        axis = jnp.zeros((0, 3), dtype)
+
+    # DoF motions: (angular part, pure linear part, anchor point)
+    dof_joint = _idx(joints.dof_joint)
+    dof_body = _idx(joints.dof_body)
+    comp = np.asarray(joints.dof_component)
+    rot = np.asarray(joints.dof_is_rotation, dtype=bool)
+    dtypes = np.asarray(joints.type)[dof_joint] if joints.nv else np.zeros(0, int)
+    nv = joints.nv
+    if nv:
+        body_cols = jnp.swapaxes(body_R, -1, -2)[dof_body, comp]  # column `comp` of R_body
+        unit = jnp.eye(3, dtype=dtype)[comp]
+        jaxis = axis[dof_joint]
+        ang = jnp.where((dtypes == HINGE)[:, None], jaxis, 0.0)
+        ang = jnp.where(((dtypes == BALL) | ((dtypes == FREE) & rot))[:, None], body_cols, ang)
+        lin = jnp.where((dtypes == SLIDE)[:, None], jaxis, 0.0)
+        lin = jnp.where(((dtypes == FREE) & ~rot)[:, None], unit, lin)
+        dof_anchor = anchor[dof_joint]
+    else:
+        ang = lin = dof_anchor = jnp.zeros((0, 3), dtype)
+
+    # base points and poles
+    first = np.asarray(joints.body_first_joint)
+    has_joint = first >= 0
+    free_body = np.asarray(joints.body_is_free, dtype=bool)
+    use_anchor = has_joint & ~free_body
+    if nj:
+        fj = np.where(use_anchor, first, 0)
+        base = jnp.where(use_anchor[:, None], anchor[fj], body_x)
+        sigma = jnp.where(use_anchor[:, None], model.joint_pos[fj], 0.0)
+    else:
+        base = body_x
+        sigma = jnp.zeros_like(body_x)
+    pole = body_x + jnp.einsum("nij,nj->ni", body_R, sigma)
+    return Kinematics(
+        body_rotation=body_R,
+        body_position=body_x,
+        base_point=base,
+        pole=pole,
+        com=com,
+        central_inertia=I_c,
+        dof_angular=ang,
+        dof_linear=lin,
+        dof_anchor=dof_anchor,
+    )
+
+
+def dof_motion_at(kin: Kinematics, dofs, points):
+    """Unit motion of DoFs ``dofs`` evaluated at ``points``: (angular, point velocity)."""
+    ang = kin.dof_angular[dofs]
+    return ang, kin.dof_linear[dofs] + cross(ang, points - kin.dof_anchor[dofs])
+
+
+class BodyMotion(eqx.Module):
+    """Angular velocity/acceleration of each body and the motion of its base point.
+
+    ``velocity`` is the velocity and ``acceleration`` the *spatial* acceleration (time
+    derivative of the velocity field at the fixed point) of the body's material point at
+    ``base_point``; :func:`point_acceleration` gives the classical acceleration of any point.
+    """
+
+    angular_velocity: Float[Array, "n_body 3"]
+    velocity: Float[Array, "n_body 3"]
+    angular_acceleration: Float[Array, "n_body 3"]
+    acceleration: Float[Array, "n_body 3"]
+    base_point: Float[Array, "n_body 3"]
+
+
+def point_velocity(motion: BodyMotion, points):
+    """Velocity of the material points of each body located at ``points`` (n_body, 3)."""
+    return motion.velocity + cross(motion.angular_velocity, points - motion.base_point)
+
+
+def point_acceleration(motion: BodyMotion, points):
+    """Classical acceleration of the material points of each body located at ``points``."""
+    d = points - motion.base_point
+    w = motion.angular_velocity
+    return (
+        motion.acceleration
+        + cross(motion.angular_acceleration, d)
+        + cross(w, motion.velocity + cross(w, d))
+    )
+
+
+def body_velocities(model: Model, kin: Kinematics, v: Float[Array, " nv"]):
+    """Angular velocity and base-point velocity of every body: sums over supporting DoFs."""
+    sup_d, sup_k = (_idx(a) for a in model.joints.dof_support_pairs)
+    nb = model.n_body
+    if sup_d.size == 0:
+        z = jnp.zeros((nb, 3), kin.base_point.dtype)
+        return z, z
+    ang, lin = dof_motion_at(kin, sup_d, kin.base_point[sup_k])
+    vd = v[sup_d][:, None]
+    w = jax.ops.segment_sum(ang * vd, sup_k, num_segments=nb, indices_are_sorted=True)
+    u = jax.ops.segment_sum(lin * vd, sup_k, num_segments=nb, indices_are_sorted=True)
+    return w, u
+
+
+def body_accelerations(
+    model: Model, kin: Kinematics, v: Float[Array, " nv"], a: Float[Array, " nv"]
+) -> BodyMotion:
+    """Velocities and accelerations of every body for joint rates ``v`` and accelerations ``a``.
+
+    ``A_k = sum_d (S_d a_d + Ṡ_d v_d)`` over the DoFs that support body ``k``, where the
+    derivative of a DoF's motion ``Ṡ_d`` is the motion of the frame just before the joint
+    crossed with ``S_d`` (MuJoCo's ``cdof_dot``).
+    """
+    joints = model.joints
+    nb, nv = model.n_body, model.nv
+    dtype = kin.base_point.dtype
+    w, u = body_velocities(model, kin, v)
+    if nv == 0:
+        z = jnp.zeros((nb, 3), dtype)
+        return BodyMotion(w, u, z, z, kin.base_point)
+    # motion of the frame just before each DoF: angular velocity and velocity at its anchor
+    ba, bd = (_idx(x) for x in joints.dof_before_pairs)
+    if ba.size:
+        ang_e, lin_e = dof_motion_at(kin, ba, kin.dof_anchor[bd])
+        ve = v[ba][:, None]
+        Om = jax.ops.segment_sum(ang_e * ve, bd, num_segments=nv)
+        Vanc = jax.ops.segment_sum(lin_e * ve, bd, num_segments=nv)
+    else:
+        Om = jnp.zeros((nv, 3), dtype)
+        Vanc = jnp.zeros((nv, 3), dtype)
+    ang_dot = cross(Om, kin.dof_angular)
+    lin_dot = cross(Om, kin.dof_linear)
+    sup_d, sup_k = (_idx(x) for x in joints.dof_support_pairs)
+    X = kin.base_point[sup_k]
+    ang, lin = dof_motion_at(kin, sup_d, X)
+    # field derivative at the fixed point X: d/dt [lin + ang × (X - anchor)]
+    lin_dot_X = (
+        lin_dot[sup_d]
+        + cross(ang_dot[sup_d], X - kin.dof_anchor[sup_d])
+        - cross(kin.dof_angular[sup_d], Vanc[sup_d])
+    )
+    ad = a[sup_d][:, None]
+    vd = v[sup_d][:, None]
+    eps = jax.ops.segment_sum(ang * ad + ang_dot[sup_d] * vd, sup_k, num_segments=nb, indices_are_sorted=True)
+    acc = jax.ops.segment_sum(lin * ad + lin_dot_X * vd, sup_k, num_segments=nb, indices_are_sorted=True)
+    return BodyMotion(w, u, eps, acc, kin.base_point)
+
+
+# ----------------------------------------------------------------------------- q integration
+def qpos_rate(model: Model, q: Float[Array, " nq"], v: Float[Array, " nv"]) -> Float[Array, " nq"]:
+    """``dq/dt`` for joint rates ``v`` (MuJoCo layout): quaternions follow ``q̇ = ½ q ⊗ (0, ω)``."""
+    joints = model.joints
+    qd = jnp.zeros_like(q)
+    types = np.asarray(joints.type, dtype=np.int64)
+    qadr = np.asarray(joints.qposadr, dtype=np.int64)
+    dadr = np.asarray(joints.dofadr, dtype=np.int64)
+    for kind in (HINGE, SLIDE, BALL, FREE):
+        js = np.nonzero(types == kind)[0]
+        if js.size == 0:
+            continue
+        qa, da = qadr[js], dadr[js]
+        if kind in (HINGE, SLIDE):
+            qd = qd.at[qa].set(v[da])
+            continue
+        if kind == FREE:
+            qd = qd.at[qa[:, None] + np.arange(3)].set(v[da[:, None] + np.arange(3)])
+            qa, da = qa + 3, da + 3
+        quat = q[qa[:, None] + np.arange(4)]
+        w = v[da[:, None] + np.arange(3)]
+        w4 = jnp.concatenate([jnp.zeros_like(w[:, :1]), w], axis=-1)
+        qd = qd.at[qa[:, None] + np.arange(4)].set(0.5 * quat_multiply(quat, w4))
+    return qd
+
+
+def _quat_exp(w, h):
+    """Quaternion of the rotation by angle |w| h about w (gradient-safe at w = 0)."""
+    n2 = jnp.sum(w * w, axis=-1, keepdims=True)
+    safe = jnp.where(n2 > 0, n2, 1.0)
+    n = jnp.sqrt(safe)
+    half = 0.5 * n * h
+    small = n2 < 1e-30
+    s = jnp.where(small, 0.5 * h, jnp.sin(half) / n)
+    c = jnp.where(small, 1.0, jnp.cos(half))
+    return jnp.concatenate([c, s * w], axis=-1)
+
+
+def integrate_qpos(model: Model, q: Float[Array, " nq"], v: Float[Array, " nv"], dt) -> Float[Array, " nq"]:
+    """Advance ``q`` by ``v`` for time ``dt`` exactly on the rotation group (MuJoCo ``mj_integratePos``)."""
+    joints = model.joints
+    out = q
+    types = np.asarray(joints.type, dtype=np.int64)
+    qadr = np.asarray(joints.qposadr, dtype=np.int64)
+    dadr = np.asarray(joints.dofadr, dtype=np.int64)
+    for kind in (HINGE, SLIDE, BALL, FREE):
+        js = np.nonzero(types == kind)[0]
+        if js.size == 0:
+            continue
+        qa, da = qadr[js], dadr[js]
+        if kind in (HINGE, SLIDE):
+            out = out.at[qa].add(dt * v[da])
+            continue
+        if kind == FREE:
+            out = out.at[qa[:, None] + np.arange(3)].add(dt * v[da[:, None] + np.arange(3)])
+            qa, da = qa + 3, da + 3
+        idx = qa[:, None] + np.arange(4)
+        quat = quat_multiply(q[idx], _quat_exp(v[da[:, None] + np.arange(3)], dt))
+        out = out.at[idx].set(quat / jnp.linalg.norm(quat, axis=-1, keepdims=True))
+    return out
+
+
+def normalize_qpos(model: Model, q: Float[Array, " nq"]) -> Float[Array, " nq"]:
+    """Normalise the quaternions of ball and free joints."""
+    joints = model.joints
+    types = np.asarray(joints.type, dtype=np.int64)
+    qadr = np.asarray(joints.qposadr, dtype=np.int64)
+    for kind, off in ((BALL, 0), (FREE, 3)):
+        js = np.nonzero(types == kind)[0]
+        if js.size == 0:
+            continue
+        idx = qadr[js][:, None] + off + np.arange(4)
+        quat = q[idx]
+        q = q.at[idx].set(quat / jnp.linalg.norm(quat, axis=-1, keepdims=True))
+    return q
