@@ -12,7 +12,7 @@ trace is the same for any number of bodies. Vectors may be 3-D (spatial trees) o
 import equinox as eqx
 import jax.numpy as jnp
 
-from ._types import Array, Float
+from ._types import Array, ArrayLike, Float
 from .tree import BodyTree
 
 __all__ = [
@@ -40,16 +40,16 @@ class AugmentedBodies(eqx.Module):
     augmented_inertia: Float[Array, "n_body *inertia"]
 
 
-def subtree_mass(tree: BodyTree, body_mass: Float[Array, " n_body"]) -> Float[Array, " n_body"]:
+def subtree_mass(tree: BodyTree, body_mass: Float[ArrayLike, " n_body"]) -> Float[Array, " n_body"]:
     """Mass of subsystem ``k``: ``m_k = sum_{i in S(k)} m_0i`` (spec §3)."""
     return tree.subtree_sum(jnp.asarray(body_mass))
 
 
 def static_moment(
     tree: BodyTree,
-    body_mass: Float[Array, " n_body"],
-    com_offset: Float[Array, "n_body dim"],
-    link: Float[Array, "n_body dim"],
+    body_mass: Float[ArrayLike, " n_body"],
+    com_offset: Float[ArrayLike, "n_body dim"],
+    link: Float[ArrayLike, "n_body dim"],
 ) -> Float[Array, "n_body dim"]:
     """Static moment of augmented body ``k`` about its base point, eq. (5).
 
@@ -79,10 +79,10 @@ def _point_inertia(mass, r):
 
 def augmented_inertia(
     tree: BodyTree,
-    body_mass: Float[Array, " n_body"],
-    central_inertia: Float[Array, "n_body 3 3"],
-    com_offset: Float[Array, "n_body 3"],
-    link: Float[Array, "n_body 3"],
+    body_mass: Float[ArrayLike, " n_body"],
+    central_inertia: Float[ArrayLike, "n_body 3 3"],
+    com_offset: Float[ArrayLike, "n_body 3"],
+    link: Float[ArrayLike, "n_body 3"],
 ) -> Float[Array, "n_body 3 3"]:
     """Inertia tensor of augmented body ``k`` about its base point ``O_0k``, eq. (6).
 
@@ -102,10 +102,10 @@ def augmented_inertia(
 
 def augmented_moment_of_inertia(
     tree: BodyTree,
-    body_mass: Float[Array, " n_body"],
-    central_inertia: Float[Array, " n_body"],
-    com_offset: Float[Array, "n_body 2"],
-    link: Float[Array, "n_body 2"],
+    body_mass: Float[ArrayLike, " n_body"],
+    central_inertia: Float[ArrayLike, " n_body"],
+    com_offset: Float[ArrayLike, "n_body 2"],
+    link: Float[ArrayLike, "n_body 2"],
 ) -> Float[Array, " n_body"]:
     """Planar reduction of eq. (6): ``J_k = k·I_k k`` about the hinge axis of body ``k``.
 
@@ -122,7 +122,7 @@ def augmented_moment_of_inertia(
 
 
 def subtree_static_moment(
-    tree: BodyTree, static_moment: Float[Array, "n_body dim"]
+    tree: BodyTree, static_moment: Float[ArrayLike, "n_body dim"]
 ) -> Float[Array, "n_body dim"]:
     """Static moment of the whole subsystem ``k`` about ``O_0k``: ``sum_{i in S(k)} m̄_i`` (spec §3)."""
     return tree.subtree_sum(static_moment)

@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._types import Array, Float
+from ._types import Array, ArrayLike, Float
 from .augmented import AugmentedBodies, augmented_inertia, static_moment, subtree_mass
 from .joints import BALL, FREE, HINGE, SLIDE
 from .kinematics import (
@@ -97,7 +97,7 @@ def _augmented(model: Model, kin: Kinematics) -> tuple[AugmentedBodies, Array]:
     return aug, link
 
 
-def augmented_bodies(model: Model, q: Float[Array, " nq"]) -> AugmentedBodies:
+def augmented_bodies(model: Model, q: Float[ArrayLike, " nq"]) -> AugmentedBodies:
     """Subtree masses, augmented static moments and inertias about ``O_0k`` (spec eqs 5–6).
 
     Vectors and tensors are in world axes; the base point of body ``k`` is the anchor of its
@@ -127,7 +127,7 @@ def _composite(model: Model, kin: Kinematics, aug: AugmentedBodies):
     return h, K
 
 
-def mass_matrix(model: Model, q: Float[Array, " nq"]) -> Float[Array, "nv nv"]:
+def mass_matrix(model: Model, q: Float[ArrayLike, " nq"]) -> Float[Array, "nv nv"]:
     """Joint-space mass matrix ``M(q)`` (armature included), ``Aᵀ D A`` by subsystem sums.
 
     See the module docstring; one entry per (supporting DoF, DoF) pair, no dense product.
@@ -208,10 +208,10 @@ def _project(model: Model, kin: Kinematics, factors):
 
 def inverse_dynamics(
     model: Model,
-    q: Float[Array, " nq"],
-    v: Float[Array, " nv"],
-    a: Float[Array, " nv"],
-    external: Float[Array, "n_body 6"] | None = None,
+    q: Float[ArrayLike, " nq"],
+    v: Float[ArrayLike, " nv"],
+    a: Float[ArrayLike, " nv"],
+    external: Float[ArrayLike, "n_body 6"] | None = None,
 ) -> Float[Array, " nv"]:
     """Joint forces ``tau = M(q) a + bias(q, v)`` (minus external loads), via Statement 1.
 
@@ -226,7 +226,7 @@ def inverse_dynamics(
     return tau + model.dof_armature * a
 
 
-def bias_forces(model: Model, q: Float[Array, " nq"], v: Float[Array, " nv"]) -> Float[Array, " nv"]:
+def bias_forces(model: Model, q: Float[ArrayLike, " nq"], v: Float[ArrayLike, " nv"]) -> Float[Array, " nv"]:
     """Coriolis, centrifugal and gravity forces (MuJoCo ``qfrc_bias``): ``tau`` at ``a = 0``."""
     q, v = check_state(model, q, v)
     kin = forward_kinematics(model, q)
@@ -235,10 +235,10 @@ def bias_forces(model: Model, q: Float[Array, " nq"], v: Float[Array, " nv"]) ->
 
 def forward_dynamics(
     model: Model,
-    q: Float[Array, " nq"],
-    v: Float[Array, " nv"],
-    tau: Float[Array, " nv"] | None = None,
-    external: Float[Array, "n_body 6"] | None = None,
+    q: Float[ArrayLike, " nq"],
+    v: Float[ArrayLike, " nv"],
+    tau: Float[ArrayLike, " nv"] | None = None,
+    external: Float[ArrayLike, "n_body 6"] | None = None,
 ) -> Float[Array, " nv"]:
     """Joint accelerations ``a = M⁻¹ (tau - bias + external)`` by a Cholesky solve.
 
@@ -257,10 +257,10 @@ def forward_dynamics(
 
 def joint_reactions(
     model: Model,
-    q: Float[Array, " nq"],
-    v: Float[Array, " nv"],
-    a: Float[Array, " nv"],
-    external: Float[Array, "n_body 6"] | None = None,
+    q: Float[ArrayLike, " nq"],
+    v: Float[ArrayLike, " nv"],
+    a: Float[ArrayLike, " nv"],
+    external: Float[ArrayLike, "n_body 6"] | None = None,
 ) -> tuple[Float[Array, "n_body 3"], Float[Array, "n_body 3"]]:
     """Force and moment the parent exerts on each body at its base point ``O_0k`` (world).
 
@@ -275,7 +275,7 @@ def joint_reactions(
     return f.force, f.moment
 
 
-def kinetic_energy(model: Model, q: Float[Array, " nq"], v: Float[Array, " nv"]) -> Float[Array, ""]:
+def kinetic_energy(model: Model, q: Float[ArrayLike, " nq"], v: Float[ArrayLike, " nv"]) -> Float[Array, ""]:
     """``T = sum_k ½ m_0k |v_Ck|² + ½ ω_k·I_Ck ω_k`` from body velocities (armature adds ½ a v²)."""
     q, v = check_state(model, q, v)
     kin = forward_kinematics(model, q)
@@ -325,7 +325,7 @@ def _spring_terms(model: Model, q):
     return out
 
 
-def potential_energy(model: Model, q: Float[Array, " nq"]) -> Float[Array, ""]:
+def potential_energy(model: Model, q: Float[ArrayLike, " nq"]) -> Float[Array, ""]:
     """Gravity plus joint-spring potential energy (as MuJoCo ``mj_energyPos``)."""
     q = check_state(model, q)
     kin = forward_kinematics(model, q)
@@ -335,7 +335,7 @@ def potential_energy(model: Model, q: Float[Array, " nq"]) -> Float[Array, ""]:
     return e
 
 
-def passive_forces(model: Model, q: Float[Array, " nq"], v: Float[Array, " nv"]) -> Float[Array, " nv"]:
+def passive_forces(model: Model, q: Float[ArrayLike, " nq"], v: Float[ArrayLike, " nv"]) -> Float[Array, " nv"]:
     """Joint springs towards ``qpos_spring`` and viscous damping (MuJoCo ``qfrc_passive``)."""
     q, v = check_state(model, q, v)
     f = -model.dof_damping * v

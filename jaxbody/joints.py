@@ -23,6 +23,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from ._types import ScalarLike, VectorLike
+
 from .tree import BodyTree
 
 __all__ = [
@@ -55,11 +57,11 @@ class _JointSpec:
     """
 
     name: str | None = None
-    pos: Sequence[float] = (0.0, 0.0, 0.0)
-    axis: Sequence[float] = (0.0, 0.0, 1.0)
-    armature: float = 0.0
-    damping: float = 0.0
-    stiffness: float = 0.0
+    pos: VectorLike = (0.0, 0.0, 0.0)
+    axis: VectorLike = (0.0, 0.0, 1.0)
+    armature: ScalarLike = 0.0
+    damping: ScalarLike = 0.0
+    stiffness: ScalarLike = 0.0
 
     kind: int = dataclasses.field(default=-1, init=False)
 
@@ -68,8 +70,8 @@ class _JointSpec:
 class Hinge(_JointSpec):
     """Rotation about ``axis`` through ``pos``; ``ref`` is the angle of the reference pose."""
 
-    ref: float = 0.0
-    springref: float = 0.0
+    ref: ScalarLike = 0.0
+    springref: ScalarLike = 0.0
     kind: int = dataclasses.field(default=HINGE, init=False)
 
 
@@ -77,8 +79,8 @@ class Hinge(_JointSpec):
 class Slide(_JointSpec):
     """Translation along ``axis``; ``ref`` is the displacement of the reference pose."""
 
-    ref: float = 0.0
-    springref: float = 0.0
+    ref: ScalarLike = 0.0
+    springref: ScalarLike = 0.0
     kind: int = dataclasses.field(default=SLIDE, init=False)
 
 

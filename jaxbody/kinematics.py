@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._types import Array, Float
+from ._types import Array, ArrayLike, Float
 from .joints import BALL, FREE, HINGE, SLIDE
 from .model import Model
 
@@ -48,7 +48,7 @@ def cross(a, b):
     return jnp.cross(a, b)
 
 
-def quat_to_matrix(q: Float[Array, "*b 4"]) -> Float[Array, "*b 3 3"]:
+def quat_to_matrix(q: Float[ArrayLike, "*b 4"]) -> Float[Array, "*b 3 3"]:
     """Rotation matrix of a quaternion (w, x, y, z), normalised first (gradient-safe at 0)."""
     n2 = jnp.sum(q * q, axis=-1, keepdims=True)
     safe = jnp.where(n2 > 0, n2, 1.0)
@@ -65,7 +65,7 @@ def quat_to_matrix(q: Float[Array, "*b 4"]) -> Float[Array, "*b 3 3"]:
     return r.reshape(q.shape[:-1] + (3, 3))
 
 
-def quat_multiply(a: Float[Array, "*b 4"], b: Float[Array, "*b 4"]) -> Float[Array, "*b 4"]:
+def quat_multiply(a: Float[ArrayLike, "*b 4"], b: Float[ArrayLike, "*b 4"]) -> Float[Array, "*b 4"]:
     """Hamilton product ``a ⊗ b`` of (w, x, y, z) quaternions."""
     aw, ax, ay, az = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
     bw, bx, by, bz = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
@@ -80,7 +80,7 @@ def quat_multiply(a: Float[Array, "*b 4"], b: Float[Array, "*b 4"]) -> Float[Arr
     )
 
 
-def axis_angle_matrix(axis: Float[Array, "*b 3"], angle: Float[Array, "*b"]) -> Float[Array, "*b 3 3"]:
+def axis_angle_matrix(axis: Float[ArrayLike, "*b 3"], angle: Float[ArrayLike, "*b"]) -> Float[Array, "*b 3 3"]:
     """Rodrigues' rotation about a unit ``axis`` by ``angle``."""
     c, s = jnp.cos(angle)[..., None, None], jnp.sin(angle)[..., None, None]
     x, y, z = axis[..., 0], axis[..., 1], axis[..., 2]
@@ -168,7 +168,7 @@ def _compose(outer, inner):
     return Ro @ Ri, jnp.einsum("nij,nj->ni", Ro, ti) + to
 
 
-def forward_kinematics(model: Model, q: Float[Array, " nq"]) -> Kinematics:
+def forward_kinematics(model: Model, q: Float[ArrayLike, " nq"]) -> Kinematics:
     """World frames, base points, poles, CMs and DoF motions at configuration ``q``.
 
     Follows MuJoCo's ``mj_kinematics`` and ``mj_comPos`` conventions (DESIGN.md).
@@ -280,7 +280,7 @@ def point_acceleration(motion: BodyMotion, points):
     )
 
 
-def body_velocities(model: Model, kin: Kinematics, v: Float[Array, " nv"]):
+def body_velocities(model: Model, kin: Kinematics, v: Float[ArrayLike, " nv"]):
     """Angular velocity and base-point velocity of every body: sums over supporting DoFs."""
     sup_d, sup_k = (_idx(a) for a in model.joints.dof_support_pairs)
     nb = model.n_body
@@ -295,7 +295,7 @@ def body_velocities(model: Model, kin: Kinematics, v: Float[Array, " nv"]):
 
 
 def body_accelerations(
-    model: Model, kin: Kinematics, v: Float[Array, " nv"], a: Float[Array, " nv"]
+    model: Model, kin: Kinematics, v: Float[ArrayLike, " nv"], a: Float[ArrayLike, " nv"]
 ) -> BodyMotion:
     """Velocities and accelerations of every body for joint rates ``v`` and accelerations ``a``.
 
@@ -339,7 +339,7 @@ def body_accelerations(
 
 
 # ----------------------------------------------------------------------------- q integration
-def qpos_rate(model: Model, q: Float[Array, " nq"], v: Float[Array, " nv"]) -> Float[Array, " nq"]:
+def qpos_rate(model: Model, q: Float[ArrayLike, " nq"], v: Float[ArrayLike, " nv"]) -> Float[Array, " nq"]:
     """``dq/dt`` for joint rates ``v`` (MuJoCo layout): quaternions follow ``q̇ = ½ q ⊗ (0, ω)``."""
     joints = model.joints
     qd = jnp.zeros_like(q)
@@ -376,7 +376,7 @@ def _quat_exp(w, h):
     return jnp.concatenate([c, s * w], axis=-1)
 
 
-def integrate_qpos(model: Model, q: Float[Array, " nq"], v: Float[Array, " nv"], dt) -> Float[Array, " nq"]:
+def integrate_qpos(model: Model, q: Float[ArrayLike, " nq"], v: Float[ArrayLike, " nv"], dt) -> Float[Array, " nq"]:
     """Advance ``q`` by ``v`` for time ``dt`` exactly on the rotation group (MuJoCo ``mj_integratePos``)."""
     joints = model.joints
     out = q
@@ -400,7 +400,7 @@ def integrate_qpos(model: Model, q: Float[Array, " nq"], v: Float[Array, " nv"],
     return out
 
 
-def normalize_qpos(model: Model, q: Float[Array, " nq"]) -> Float[Array, " nq"]:
+def normalize_qpos(model: Model, q: Float[ArrayLike, " nq"]) -> Float[Array, " nq"]:
     """Normalise the quaternions of ball and free joints."""
     joints = model.joints
     types = np.asarray(joints.type, dtype=np.int64)

@@ -23,7 +23,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ._types import Array, Float
+from ._types import Array, ArrayLike, Float, ScalarLike, VectorLike
 from .joints import BALL, FREE, HINGE, JOINT_KIND_NAMES, JOINT_NQ, SLIDE, JointLayout, _JointSpec
 from .tree import BodyTree
 
@@ -222,7 +222,7 @@ class ModelBuilder:
     ``(xx, yy, zz, xy, xz, yz)`` (MJCF ``fullinertia``) or a 3×3 matrix.
     """
 
-    def __init__(self, gravity: Sequence[float] = (0.0, 0.0, -9.81), name: str = "model"):
+    def __init__(self, gravity: VectorLike = (0.0, 0.0, -9.81), name: str = "model"):
         self.gravity = _check_finite(gravity, "gravity")
         self.name = name
         self._bodies: list[dict] = []
@@ -232,12 +232,12 @@ class ModelBuilder:
         name: str,
         parent: str | int | None = None,
         *,
-        pos: Sequence[float] = (0.0, 0.0, 0.0),
-        quat: Sequence[float] = (1.0, 0.0, 0.0, 0.0),
-        mass: float = 0.0,
-        com: Sequence[float] = (0.0, 0.0, 0.0),
+        pos: VectorLike = (0.0, 0.0, 0.0),
+        quat: VectorLike = (1.0, 0.0, 0.0, 0.0),
+        mass: ScalarLike = 0.0,
+        com: VectorLike = (0.0, 0.0, 0.0),
         inertia=(0.0, 0.0, 0.0),
-        joints: Sequence[_JointSpec] = (),
+        joints: Sequence = (),
     ) -> int:
         """Add a body; returns its index. ``parent`` is a name, an index or None (world)."""
         names = [b["name"] for b in self._bodies]

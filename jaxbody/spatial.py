@@ -19,7 +19,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ._types import Array, Float
+from ._types import Array, ArrayLike, Float
 from .tree import BodyTree
 
 __all__ = [
@@ -33,7 +33,7 @@ __all__ = [
 ]
 
 
-def skew(a: Float[Array, "*b 3"]) -> Float[Array, "*b 3 3"]:
+def skew(a: Float[ArrayLike, "*b 3"]) -> Float[Array, "*b 3 3"]:
     """``[a]×`` with ``[a]× b = a × b``."""
     x, y, z = a[..., 0], a[..., 1], a[..., 2]
     zero = jnp.zeros_like(x)
@@ -62,12 +62,12 @@ class ForceFactors(eqx.Module):
 
 def base_point_acceleration(
     tree: BodyTree,
-    link: Float[Array, "n_body 3"],
-    angular_velocity: Float[Array, "n_body 3"],
-    angular_acceleration: Float[Array, "n_body 3"],
-    relative_velocity: Float[Array, "n_body 3"],
-    relative_acceleration: Float[Array, "n_body 3"],
-    root_acceleration: Float[Array, "n_body 3"],
+    link: Float[ArrayLike, "n_body 3"],
+    angular_velocity: Float[ArrayLike, "n_body 3"],
+    angular_acceleration: Float[ArrayLike, "n_body 3"],
+    relative_velocity: Float[ArrayLike, "n_body 3"],
+    relative_acceleration: Float[ArrayLike, "n_body 3"],
+    root_acceleration: Float[ArrayLike, "n_body 3"],
 ) -> Float[Array, "n_body 3"]:
     """Acceleration of every base point, eq. (3).
 
@@ -91,12 +91,12 @@ def base_point_acceleration(
 
 def relative_inertial_force(
     tree: BodyTree,
-    subtree_mass: Float[Array, " n_body"],
-    static_moment: Float[Array, "n_body 3"],
-    angular_velocity: Float[Array, "n_body 3"],
-    angular_acceleration: Float[Array, "n_body 3"],
-    relative_velocity: Float[Array, "n_body 3"],
-    relative_acceleration: Float[Array, "n_body 3"],
+    subtree_mass: Float[ArrayLike, " n_body"],
+    static_moment: Float[ArrayLike, "n_body 3"],
+    angular_velocity: Float[ArrayLike, "n_body 3"],
+    angular_acceleration: Float[ArrayLike, "n_body 3"],
+    relative_velocity: Float[ArrayLike, "n_body 3"],
+    relative_acceleration: Float[ArrayLike, "n_body 3"],
 ) -> Float[Array, "n_body 3"]:
     """Inertial force of subsystem ``k`` due to motion relative to ``O_0k``, eq. (4)."""
     w = angular_velocity
@@ -110,18 +110,18 @@ def relative_inertial_force(
 
 def relative_force_factors(
     tree: BodyTree,
-    subtree_mass: Float[Array, " n_body"],
-    static_moment: Float[Array, "n_body 3"],
-    augmented_inertia: Float[Array, "n_body 3 3"],
-    link: Float[Array, "n_body 3"],
-    angular_velocity: Float[Array, "n_body 3"],
-    angular_acceleration: Float[Array, "n_body 3"],
-    relative_velocity: Float[Array, "n_body 3"],
-    relative_acceleration: Float[Array, "n_body 3"],
-    root_acceleration: Float[Array, "n_body 3"],
-    gravity: Float[Array, "3"],
-    external_force: Float[Array, "n_body 3"] | None = None,
-    external_moment: Float[Array, "n_body 3"] | None = None,
+    subtree_mass: Float[ArrayLike, " n_body"],
+    static_moment: Float[ArrayLike, "n_body 3"],
+    augmented_inertia: Float[ArrayLike, "n_body 3 3"],
+    link: Float[ArrayLike, "n_body 3"],
+    angular_velocity: Float[ArrayLike, "n_body 3"],
+    angular_acceleration: Float[ArrayLike, "n_body 3"],
+    relative_velocity: Float[ArrayLike, "n_body 3"],
+    relative_acceleration: Float[ArrayLike, "n_body 3"],
+    root_acceleration: Float[ArrayLike, "n_body 3"],
+    gravity: Float[ArrayLike, "3"],
+    external_force: Float[ArrayLike, "n_body 3"] | None = None,
+    external_moment: Float[ArrayLike, "n_body 3"] | None = None,
 ) -> ForceFactors:
     """Relative force factors ``F_k``, ``M_k`` of every body: Statement 1, eqs (1)–(4).
 
@@ -163,10 +163,10 @@ def relative_force_factors(
 
 def absolute_mass_matrix(
     tree: BodyTree,
-    static_moment: Float[Array, "n_body 3"],
-    augmented_inertia: Float[Array, "n_body 3 3"],
-    link: Float[Array, "n_body 3"],
-    total_mass: Float[Array, ""] | None = None,
+    static_moment: Float[ArrayLike, "n_body 3"],
+    augmented_inertia: Float[ArrayLike, "n_body 3 3"],
+    link: Float[ArrayLike, "n_body 3"],
+    total_mass: Float[ArrayLike, ""] | None = None,
 ) -> Float[Array, "n n"]:
     """Block matrix ``D`` of the absolute equations (spec §8, Cor. 4; with Cor. 1 rows).
 
@@ -201,11 +201,11 @@ def absolute_mass_matrix(
 
 def absolute_bias(
     tree: BodyTree,
-    static_moment: Float[Array, "n_body 3"],
-    augmented_inertia: Float[Array, "n_body 3 3"],
-    link: Float[Array, "n_body 3"],
-    angular_velocity: Float[Array, "n_body 3"],
-    gravity: Float[Array, "3"],
+    static_moment: Float[ArrayLike, "n_body 3"],
+    augmented_inertia: Float[ArrayLike, "n_body 3 3"],
+    link: Float[ArrayLike, "n_body 3"],
+    angular_velocity: Float[ArrayLike, "n_body 3"],
+    gravity: Float[ArrayLike, "3"],
 ) -> Float[Array, "n_body 3"]:
     """Velocity-product and gravity vector ``b`` of the absolute equations (spec §8, Cor. 4).
 

@@ -55,7 +55,7 @@ class BodyTree:
 
     __slots__ = ("parent", "names", "__dict__")
 
-    def __init__(self, parent: Sequence[int], names: Sequence[str] | None = None):
+    def __init__(self, parent: Sequence, names: Sequence[str] | None = None):
         parent_list = list(parent)
         n = len(parent_list)
         if names is None:
