@@ -39,6 +39,7 @@ from .kinematics import (
     point_velocity,
     quat_multiply,
 )
+from .linalg import solve_spd
 from .model import Model
 from .spatial import relative_force_factors
 
@@ -245,8 +246,6 @@ def forward_dynamics(
     The solve is :func:`jaxbody.linalg.solve_spd` (no LAPACK call, safe under large
     ``vmap`` batches on CPU, no explicit inverse).
     """
-    from .linalg import solve_spd  # lazy: linalg.py lands in parallel (move to top when present)
-
     q, v = check_state(model, q, v)
     kin = forward_kinematics(model, q)
     rhs = -_project(model, kin, _force_factors(model, kin, v, jnp.zeros_like(v), external))

@@ -1,0 +1,15 @@
+"""The papers' worked examples as ready systems (spec §11; defaults = tables of §12)."""
+
+from ._embedded import EmbeddedPlanarSystem as EmbeddedPlanarSystem
+from .telegin import (
+    CartPendulum as CartPendulum,
+    OscillatingSupportPendulum as OscillatingSupportPendulum,
+    VerticalLineDoublePendulum as VerticalLineDoublePendulum,
+    WheelsetPendulum as WheelsetPendulum,
+    cart_pendulum as cart_pendulum,
+    double_pendulum as double_pendulum,
+    oscillating_support_pendulum as oscillating_support_pendulum,
+    three_link_manipulator as three_link_manipulator,
+    vertical_line_double_pendulum as vertical_line_double_pendulum,
+    wheelset_pendulum as wheelset_pendulum,
+)
