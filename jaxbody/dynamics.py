@@ -34,9 +34,11 @@ from .kinematics import (
     body_accelerations,
     body_velocities,
     dof_motion_at,
+    dof_motion_plucker,
     forward_kinematics,
     point_acceleration,
     point_velocity,
+    reference_point,
     quat_multiply,
 )
 from .linalg import solve_spd
@@ -108,52 +110,48 @@ def augmented_bodies(model: Model, q: Float[ArrayLike, " nq"]) -> AugmentedBodie
     return _augmented(model, forward_kinematics(model, q))[0]
 
 
-def _composite(model: Model, kin: Kinematics, aug: AugmentedBodies):
-    """Subsystem static moment ``h_k`` and inertia ``K_k`` about ``O_0k``."""
+def _composite_about(model: Model, kin: Kinematics, aug: AugmentedBodies, point):
+    """Mass, static moment and inertia of every subsystem about one ``point``.
+
+    From the augmented bodies (spec §3): the subsystem static moment about ``O_0k`` is
+    ``h_k = sum_{i in S(k)} m̄_i`` and its inertia ``K_k = sum_{l in S(k)} (I_l - [d_kl]×[m̄_l]×
+    - [m̄_l]×[d_kl]×)`` with ``d_kl = O_0l - O_0k``; moved to ``point`` (``x_l = O_0l - point``)
+    this is ``sum_{l in S(k)} (I_l - sym(x_l, m̄_l)) - m_k [x_k]×²`` and ``h_k + m_k x_k``.
+    """
     tree = model.tree
-    root, body = _i32(tree.subtree_pair_root), _i32(tree.subtree_pair_body)
-    d = kin.base_point[body] - kin.base_point[root]
-    mb = aug.static_moment[body]
-    dm = jnp.sum(d * mb, axis=-1)[:, None, None]
-    eye = jnp.eye(3, dtype=d.dtype)
-    term = (
-        aug.augmented_inertia[body]
-        + 2.0 * dm * eye
-        - mb[:, :, None] * d[:, None, :]
-        - d[:, :, None] * mb[:, None, :]
-    )
-    nb = tree.n_body
-    K = jax.ops.segment_sum(term, root, num_segments=nb, indices_are_sorted=True)
-    h = tree.subtree_sum(aug.static_moment)
-    return h, K
+    x = kin.base_point - point
+    mbar, m = aug.static_moment, aug.subtree_mass
+    eye = jnp.eye(3, dtype=x.dtype)
+    xm = jnp.sum(x * mbar, axis=-1)[:, None, None]
+    term = aug.augmented_inertia + 2.0 * xm * eye - mbar[:, :, None] * x[:, None, :] - x[:, :, None] * mbar[:, None, :]
+    x2 = jnp.sum(x * x, axis=-1)[:, None, None]
+    K = tree.subtree_sum(term) + m[:, None, None] * (x2 * eye - x[:, :, None] * x[:, None, :])
+    h = tree.subtree_sum(mbar) + m[:, None] * x
+    return m, h, K
 
 
 def mass_matrix(model: Model, q: Float[ArrayLike, " nq"]) -> Float[Array, "nv nv"]:
     """Joint-space mass matrix ``M(q)`` (armature included), ``Aᵀ D A`` by subsystem sums.
 
-    See the module docstring; one entry per (supporting DoF, DoF) pair, no dense product.
+    See the module docstring: ``M_ab = S_a · 𝕀_k S_b`` for DoF ``a`` supporting DoF ``b`` on
+    body ``k``, with the subsystem inertia ``𝕀_k`` built from the augmented bodies.
     """
     q = check_state(model, q)
     kin = forward_kinematics(model, q)
-    return _mass_matrix(model, kin)
+    return _mass_matrix(model, kin, _augmented(model, kin)[0])
 
 
-def _mass_matrix(model: Model, kin: Kinematics):
-    nv = model.nv
-    aug, _ = _augmented(model, kin)
-    h, K = _composite(model, kin, aug)
-    a_idx, b_idx = (_i32(x) for x in model.joints.mass_pairs)
-    k = _i32(model.joints.dof_body)[b_idx]
-    O = kin.base_point[k]
-    ang_a, vel_a = dof_motion_at(kin, a_idx, O)
-    ang_b, vel_b = dof_motion_at(kin, b_idx, O)
-    mk = aug.subtree_mass[k][:, None]
-    hk = h[k]
-    p = mk * vel_b + jnp.cross(ang_b, hk)
-    L = jnp.cross(hk, vel_b) + jnp.einsum("nij,nj->ni", K[k], ang_b)
-    val = jnp.sum(vel_a * p, axis=-1) + jnp.sum(ang_a * L, axis=-1)
-    M = jnp.zeros((nv, nv), val.dtype).at[a_idx, b_idx].set(val).at[b_idx, a_idx].set(val)
-    return M + jnp.diag(model.dof_armature)
+def _mass_matrix(model: Model, kin: Kinematics, aug: AugmentedBodies):
+    c0 = reference_point(kin)
+    m, h, K = _composite_about(model, kin, aug, c0)
+    k = _i32(model.joints.dof_body)
+    ang, lin0 = dof_motion_plucker(kin, c0)
+    # wrench of subsystem k moving with the unit motion of DoF b, about c0
+    p = m[k][:, None] * lin0 + jnp.cross(ang, h[k])
+    L = jnp.cross(h[k], lin0) + jnp.einsum("nij,nj->ni", K[k], ang)
+    P = lin0 @ p.T + ang @ L.T  # P[a, b] = S_a · 𝕀_k(b) S_b
+    U = jnp.asarray(model.joints.mass_mask, P.dtype) * P
+    return U + U.T - jnp.diag(jnp.diag(U)) + jnp.diag(model.dof_armature)
 
 
 def _external_loads(model: Model, kin: Kinematics, external):
@@ -167,10 +165,10 @@ def _external_loads(model: Model, kin: Kinematics, external):
     return f, t + jnp.cross(kin.com - kin.base_point, f)
 
 
-def _force_factors(model: Model, kin: Kinematics, v, a, external=None, gravity=True):
+def _force_factors(model: Model, kin: Kinematics, v, a, external=None, augmented=None):
     """Statement 1 at state (q, v, a): relative force factors of every body."""
     tree = model.tree
-    aug, link = _augmented(model, kin)
+    aug, link = _augmented(model, kin) if augmented is None else augmented
     motion = body_accelerations(model, kin, v, a)
     par = tree.parent_array
     has_parent = jnp.asarray(par >= 0)[:, None]
@@ -190,7 +188,7 @@ def _force_factors(model: Model, kin: Kinematics, v, a, external=None, gravity=T
     Vr = jnp.where(free, 0.0, Vr)
     Wr = jnp.where(free, 0.0, Wr)
     W_root = jnp.where(free, point_acceleration(motion, kin.base_point), zero)
-    g = model.gravity if gravity else jnp.zeros_like(model.gravity)
+    g = model.gravity
     Fr, Mr = _external_loads(model, kin, external)
     return relative_force_factors(
         tree, aug.subtree_mass, aug.static_moment, aug.augmented_inertia, link,
@@ -248,10 +246,11 @@ def forward_dynamics(
     """
     q, v = check_state(model, q, v)
     kin = forward_kinematics(model, q)
-    rhs = -_project(model, kin, _force_factors(model, kin, v, jnp.zeros_like(v), external))
+    augmented = _augmented(model, kin)
+    rhs = -_project(model, kin, _force_factors(model, kin, v, jnp.zeros_like(v), external, augmented))
     if tau is not None:
         rhs = rhs + _vec(model, tau, "tau", model.nv)
-    return solve_spd(_mass_matrix(model, kin), rhs)
+    return solve_spd(_mass_matrix(model, kin, augmented[0]), rhs)
 
 
 def joint_reactions(

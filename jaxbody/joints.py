@@ -179,6 +179,34 @@ class JointLayout:
     def n_joint(self) -> int:
         return len(self.type)
 
+    def _pair_matrix(self, name, rows, cols, pairs, transpose=False):
+        cache = self.__dict__.setdefault("_dense_cache", {})
+        if name not in cache:
+            m = np.zeros((rows, cols), dtype=np.float64)
+            a, b = (np.asarray(x, dtype=np.int64) for x in pairs)
+            if a.size:
+                if transpose:
+                    m[b, a] = 1.0
+                else:
+                    m[a, b] = 1.0
+            cache[name] = m
+        return cache[name]
+
+    @property
+    def support_matrix(self) -> np.ndarray:
+        """``S[k, d] = 1`` iff DoF ``d`` moves body ``k`` (dense view of ``dof_support_pairs``)."""
+        return self._pair_matrix("support", self.tree.n_body, self.nv, self.dof_support_pairs, True)
+
+    @property
+    def before_matrix(self) -> np.ndarray:
+        """``B[d, e] = 1`` iff DoF ``e`` comes before DoF ``d`` (dense ``dof_before_pairs``)."""
+        return self._pair_matrix("before", self.nv, self.nv, self.dof_before_pairs, True)
+
+    @property
+    def mass_mask(self) -> np.ndarray:
+        """``U[a, b] = 1`` for the upper-triangle pairs of ``mass_pairs`` (a ≤ b, a supports b)."""
+        return self._pair_matrix("mass", self.nv, self.nv, self.mass_pairs)
+
     def _build(self):
         tree = self.tree
         nb, nj = tree.n_body, len(self.type)

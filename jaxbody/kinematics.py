@@ -35,6 +35,8 @@ __all__ = [
     "forward_kinematics",
     "dof_motion_at",
     "body_velocities",
+    "reference_point",
+    "dof_motion_plucker",
     "body_accelerations",
     "point_velocity",
     "point_acceleration",
@@ -250,28 +252,30 @@ def dof_motion_at(kin: Kinematics, dofs, points):
 
 
 class BodyMotion(eqx.Module):
-    """Angular velocity/acceleration of each body and the motion of its base point.
+    """Angular velocity/acceleration of each body and the motion of one reference point.
 
     ``velocity`` is the velocity and ``acceleration`` the *spatial* acceleration (time
-    derivative of the velocity field at the fixed point) of the body's material point at
-    ``base_point``; :func:`point_acceleration` gives the classical acceleration of any point.
+    derivative of the velocity field at the fixed point) of each body's material point located
+    at ``reference_point`` (Plücker coordinates about that point; one point for all bodies keeps
+    every sum over DoFs a dense product). :func:`point_velocity` and
+    :func:`point_acceleration` give the classical motion of any point of a body.
     """
 
     angular_velocity: Float[Array, "n_body 3"]
     velocity: Float[Array, "n_body 3"]
     angular_acceleration: Float[Array, "n_body 3"]
     acceleration: Float[Array, "n_body 3"]
-    base_point: Float[Array, "n_body 3"]
+    reference_point: Float[Array, "n_body 3"]
 
 
 def point_velocity(motion: BodyMotion, points):
     """Velocity of the material points of each body located at ``points`` (n_body, 3)."""
-    return motion.velocity + cross(motion.angular_velocity, points - motion.base_point)
+    return motion.velocity + cross(motion.angular_velocity, points - motion.reference_point)
 
 
 def point_acceleration(motion: BodyMotion, points):
     """Classical acceleration of the material points of each body located at ``points``."""
-    d = points - motion.base_point
+    d = points - motion.reference_point
     w = motion.angular_velocity
     return (
         motion.acceleration
@@ -280,18 +284,35 @@ def point_acceleration(motion: BodyMotion, points):
     )
 
 
+def reference_point(kin: Kinematics) -> Float[Array, "3"]:
+    """Common point for Plücker coordinates: the base point of body 0 (keeps lever arms short)."""
+    return kin.base_point[0]
+
+
+def dof_motion_plucker(kin: Kinematics, c0):
+    """Unit motion of every DoF about the point ``c0``: (angular part, velocity of ``c0``)."""
+    return kin.dof_angular, kin.dof_linear + cross(kin.dof_angular, c0 - kin.dof_anchor)
+
+
+def _dense(matrix, x):
+    return jnp.tensordot(jnp.asarray(matrix, x.dtype), x, axes=1)
+
+
 def body_velocities(model: Model, kin: Kinematics, v: Float[ArrayLike, " nv"]):
-    """Angular velocity and base-point velocity of every body: sums over supporting DoFs."""
-    sup_d, sup_k = (_idx(a) for a in model.joints.dof_support_pairs)
+    """Angular velocity of every body and the velocity of its base point.
+
+    Sums over the supporting DoFs: ``ω_k = sum_d S[k, d] ω_d v_d`` (a dense static product).
+    """
     nb = model.n_body
-    if sup_d.size == 0:
+    if model.nv == 0:
         z = jnp.zeros((nb, 3), kin.base_point.dtype)
         return z, z
-    ang, lin = dof_motion_at(kin, sup_d, kin.base_point[sup_k])
-    vd = v[sup_d][:, None]
-    w = jax.ops.segment_sum(ang * vd, sup_k, num_segments=nb, indices_are_sorted=True)
-    u = jax.ops.segment_sum(lin * vd, sup_k, num_segments=nb, indices_are_sorted=True)
-    return w, u
+    c0 = reference_point(kin)
+    ang, lin0 = dof_motion_plucker(kin, c0)
+    sup = model.joints.support_matrix
+    w = _dense(sup, ang * v[:, None])
+    u0 = _dense(sup, lin0 * v[:, None])
+    return w, u0 + cross(w, kin.base_point - c0)
 
 
 def body_accelerations(
@@ -301,41 +322,30 @@ def body_accelerations(
 
     ``A_k = sum_d (S_d a_d + Ṡ_d v_d)`` over the DoFs that support body ``k``, where the
     derivative of a DoF's motion ``Ṡ_d`` is the motion of the frame just before the joint
-    crossed with ``S_d`` (MuJoCo's ``cdof_dot``).
+    crossed with ``S_d`` (MuJoCo's ``cdof_dot``). All in Plücker coordinates about one point.
     """
     joints = model.joints
-    nb, nv = model.n_body, model.nv
+    nb = model.n_body
     dtype = kin.base_point.dtype
-    w, u = body_velocities(model, kin, v)
-    if nv == 0:
+    c0 = reference_point(kin)
+    ref = jnp.broadcast_to(c0, (nb, 3))
+    if model.nv == 0:
         z = jnp.zeros((nb, 3), dtype)
-        return BodyMotion(w, u, z, z, kin.base_point)
-    # motion of the frame just before each DoF: angular velocity and velocity at its anchor
-    ba, bd = (_idx(x) for x in joints.dof_before_pairs)
-    if ba.size:
-        ang_e, lin_e = dof_motion_at(kin, ba, kin.dof_anchor[bd])
-        ve = v[ba][:, None]
-        Om = jax.ops.segment_sum(ang_e * ve, bd, num_segments=nv)
-        Vanc = jax.ops.segment_sum(lin_e * ve, bd, num_segments=nv)
-    else:
-        Om = jnp.zeros((nv, 3), dtype)
-        Vanc = jnp.zeros((nv, 3), dtype)
-    ang_dot = cross(Om, kin.dof_angular)
-    lin_dot = cross(Om, kin.dof_linear)
-    sup_d, sup_k = (_idx(x) for x in joints.dof_support_pairs)
-    X = kin.base_point[sup_k]
-    ang, lin = dof_motion_at(kin, sup_d, X)
-    # field derivative at the fixed point X: d/dt [lin + ang × (X - anchor)]
-    lin_dot_X = (
-        lin_dot[sup_d]
-        + cross(ang_dot[sup_d], X - kin.dof_anchor[sup_d])
-        - cross(kin.dof_angular[sup_d], Vanc[sup_d])
-    )
-    ad = a[sup_d][:, None]
-    vd = v[sup_d][:, None]
-    eps = jax.ops.segment_sum(ang * ad + ang_dot[sup_d] * vd, sup_k, num_segments=nb, indices_are_sorted=True)
-    acc = jax.ops.segment_sum(lin * ad + lin_dot_X * vd, sup_k, num_segments=nb, indices_are_sorted=True)
-    return BodyMotion(w, u, eps, acc, kin.base_point)
+        return BodyMotion(z, z, z, z, ref)
+    ang, lin0 = dof_motion_plucker(kin, c0)
+    sv_ang, sv_lin = ang * v[:, None], lin0 * v[:, None]
+    sup = joints.support_matrix
+    w = _dense(sup, sv_ang)
+    u0 = _dense(sup, sv_lin)
+    # motion of the frame just before each DoF, then Ṡ_d = (Ω×ω_d, Ω×s_d + V×ω_d) (crm at c0)
+    bef = joints.before_matrix
+    Om = _dense(bef, sv_ang)
+    V0 = _dense(bef, sv_lin)
+    ang_dot = cross(Om, ang)
+    lin_dot = cross(Om, lin0) + cross(V0, ang)
+    eps = _dense(sup, ang * a[:, None] + ang_dot * v[:, None])
+    acc = _dense(sup, lin0 * a[:, None] + lin_dot * v[:, None])
+    return BodyMotion(w, u0, eps, acc, ref)
 
 
 # ----------------------------------------------------------------------------- q integration

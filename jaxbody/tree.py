@@ -204,10 +204,36 @@ class BodyTree:
     def _pairs(self, name):
         return jnp.asarray(np.asarray(getattr(self, name), dtype=np.int32))
 
+    #: trees up to this many bodies use dense static 0/1 matrices for subtree, path and
+    #: children sums (one matrix product, fast in batch); larger ones use segment sums.
+    DENSE_LIMIT = 256
+
+    def _dense(self, name) -> np.ndarray:
+        cache = self.__dict__.setdefault("_dense_cache", {})
+        if name not in cache:
+            n = self.n_body
+            if name == "subtree":
+                m = self.subtree_mask
+            elif name == "path":
+                m = self.subtree_mask.T
+            else:
+                m = np.zeros((n, n), dtype=bool)
+                for k, p in enumerate(self.parent):
+                    if p >= 0:
+                        m[p, k] = True
+            cache[name] = m.astype(np.float64)
+        return cache[name]
+
+    def _matmul(self, name, x):
+        m = jnp.asarray(self._dense(name), x.dtype)
+        return jnp.tensordot(m, x, axes=1)
+
     def children_sum(self, x):
         """``out[k] = sum_{j in A(k)} x[j]`` (sum over adjacent bodies). ``x``: (n, ...)."""
         x = jnp.asarray(x)
         n = self.n_body
+        if n <= self.DENSE_LIMIT:
+            return self._matmul("children", x)
         par = np.asarray(self.parent, dtype=np.int32)
         nonroot = np.nonzero(par >= 0)[0].astype(np.int32)
         if nonroot.size == 0:
@@ -219,6 +245,8 @@ class BodyTree:
     def subtree_sum(self, x):
         """``out[k] = sum_{i in S(k)} x[i]`` (sum over subsystem ``k``, ``k`` included)."""
         x = jnp.asarray(x)
+        if self.n_body <= self.DENSE_LIMIT:
+            return self._matmul("subtree", x)
         return jax.ops.segment_sum(
             x[self._pairs("subtree_pair_body")],
             self._pairs("subtree_pair_root"),
@@ -229,6 +257,8 @@ class BodyTree:
     def path_sum(self, x):
         """``out[k] = sum_{i in C(k) or i = k} x[i]`` (sum from the root down to ``k``)."""
         x = jnp.asarray(x)
+        if self.n_body <= self.DENSE_LIMIT:
+            return self._matmul("path", x)
         return jax.ops.segment_sum(
             x[self._pairs("subtree_pair_root")],
             self._pairs("subtree_pair_body"),
