@@ -29,8 +29,35 @@ from .augmented import (
 )
 
 # --- spatial engine (dynamics.py, kinematics.py, spatial.py) ---
+from . import kinematics as kinematics
+from . import spatial as spatial
+from .kinematics import (
+    forward_kinematics as forward_kinematics,
+    qpos_rate as qpos_rate,
+    integrate_qpos as integrate_qpos,
+    normalize_qpos as normalize_qpos,
+)
+from .dynamics import (
+    augmented_bodies as augmented_bodies,
+    mass_matrix as mass_matrix,
+    bias_forces as bias_forces,
+    inverse_dynamics as inverse_dynamics,
+    forward_dynamics as forward_dynamics,
+    joint_reactions as joint_reactions,
+    kinetic_energy as kinetic_energy,
+    potential_energy as potential_energy,
+    passive_forces as passive_forces,
+)
 # --- planar systems (planar.py, examples) ---
+from . import planar as planar
+from . import examples as examples
 # --- simulation (simulate.py) ---
+from .simulate import DynamicalSystem as DynamicalSystem, Solution as Solution, simulate as simulate
 # --- import (io/mujoco.py) ---
+from .io.mujoco import (
+    from_mjcf as from_mjcf,
+    from_urdf as from_urdf,
+    from_mujoco as from_mujoco,
+)
 
 __version__ = "0.1.0"
