@@ -160,8 +160,11 @@ class JointLayout:
         self._build()
 
     def __eq__(self, other):
+        if self is other:
+            return True
         return (
             isinstance(other, JointLayout)
+            and hash(self) == hash(other)
             and self.tree == other.tree
             and self.type == other.type
             and self.body == other.body
@@ -169,7 +172,11 @@ class JointLayout:
         )
 
     def __hash__(self):
-        return hash((self.tree, self.type, self.body, self.names))
+        # cached: jit hashes static fields on every call that takes a model as an argument
+        h = self.__dict__.get("_hash")
+        if h is None:
+            h = self.__dict__["_hash"] = hash((self.tree, self.type, self.body, self.names))
+        return h
 
     def __repr__(self):
         kinds = [JOINT_KIND_NAMES[k] for k in self.type]

@@ -135,6 +135,13 @@ def _pivot_ok(d: Array) -> Array:
     return (d > 0) & jnp.isfinite(d)
 
 
+def _failed_pivot(L: Array) -> Array:
+    if L.shape[0] == 0:
+        return jnp.asarray(-1, jnp.int32)
+    bad = ~_pivot_ok(jnp.diagonal(L))
+    return jnp.where(jnp.any(bad), jnp.argmax(bad).astype(jnp.int32), jnp.int32(-1))
+
+
 def _pivot_sqrt(d: Array) -> Array:
     # A non-positive, NaN or infinite pivot gives NaN, never sqrt(0) = 0 followed by
     # inf/garbage: NaN then propagates to every later column and to the whole solution.
@@ -174,7 +181,9 @@ def _factor_right_looking(S: Array) -> Array:
         w_j = lax.dynamic_index_in_dim(W, j, axis=1, keepdims=False)
         pivot = _pivot_sqrt(lax.dynamic_index_in_dim(w_j, j, keepdims=False))
         col = jnp.where(rows >= j, w_j / pivot, jnp.zeros((), S.dtype))
-        updated = W - col[:, None] * col[None, :]
+        # Finished columns (< j) are left untouched, so a NaN pivot cannot leak into them
+        # through 0 * NaN.
+        updated = jnp.where(rows[None, :] > j, W - col[:, None] * col[None, :], W)
         return jnp.where(rows[None, :] == j, col[:, None], updated)
 
     W = lax.fori_loop(0, n, column, S)
@@ -183,6 +192,8 @@ def _factor_right_looking(S: Array) -> Array:
 
 def _factor_unrolled(S: Array) -> Array:
     n = S.shape[-1]
+    if n == 0:
+        return S
     L = [[None] * n for _ in range(n)]
     for j in range(n):
         s = S[j, j]
@@ -305,7 +316,7 @@ def _cholesky_jvp(method, primals, tangents):
 @partial(jax.custom_jvp, nondiff_argnums=(2,))
 def _solve(A: Array, B: Array, method: str) -> tuple[Array, Array]:
     L = _cholesky(A, method)
-    return _solve_factored(L, B, method), failed_pivot(L)
+    return _solve_factored(L, B, method), _failed_pivot(L)
 
 
 @_solve.defjvp
@@ -315,7 +326,7 @@ def _solve_jvp(method, primals, tangents):
     X = _solve_factored(L, B, method)
     # A X = B  =>  A dX = dB - dA X, with dA read through its lower triangle like A.
     dX = _solve_factored(L, dB - _from_lower(dA) @ X, method)
-    info = failed_pivot(L)
+    info = _failed_pivot(L)
     return (X, info), (dX, np.zeros(info.shape, dtype=jax.dtypes.float0))
 
 
@@ -350,12 +361,7 @@ def failed_pivot(L: Float[ArrayLike, "n n"]) -> Int[Array, ""]:
     Raises:
         ValueError: at trace time if ``L`` is not square.
     """
-    L = _as_matrix("failed_pivot", "L", L)
-    n = L.shape[0]
-    if n == 0:
-        return jnp.asarray(-1, jnp.int32)
-    bad = ~_pivot_ok(jnp.diagonal(L))
-    return jnp.where(jnp.any(bad), jnp.argmax(bad).astype(jnp.int32), jnp.int32(-1))
+    return _failed_pivot(_as_matrix("failed_pivot", "L", L))
 
 
 def cholesky(
@@ -396,7 +402,7 @@ def cholesky(
     with jax.named_scope("cholesky"):
         L = _cholesky(A, method)
     if check and A.shape[0] > 0:
-        info = failed_pivot(L)
+        info = _failed_pivot(L)
         L = eqx.branched_error_if(
             L, info >= 0, jnp.maximum(info, 0), _pivot_messages("cholesky", A.shape[0])
         )
@@ -432,6 +438,8 @@ def cholesky_solve(
     L = _as_matrix("cholesky_solve", "L", L)
     n = L.shape[0]
     b = _as_rhs("cholesky_solve", b, n)
+    dtype = jnp.result_type(L, b)  # raises under strict promotion if they differ
+    L, b = L.astype(dtype), b.astype(dtype)
     method = _resolve_method("cholesky_solve", method, n)
     L = jnp.tril(L)
     with jax.named_scope("cholesky_solve"):
@@ -477,6 +485,8 @@ def solve_spd(
     A = _as_matrix("solve_spd", "A", A)
     n = A.shape[0]
     b = _as_rhs("solve_spd", b, n)
+    dtype = jnp.result_type(A, b)  # raises under strict promotion if they differ
+    A, b = A.astype(dtype), b.astype(dtype)
     method = _resolve_method("solve_spd", method, n)
     with jax.named_scope("solve_spd"):
         X, info = _solve(A, b, method)

@@ -101,14 +101,21 @@ class BodyTree:
         raise AttributeError("BodyTree is immutable")
 
     def __eq__(self, other):
+        if self is other:
+            return True
         return (
             isinstance(other, BodyTree)
+            and hash(self) == hash(other)
             and self.parent == other.parent
             and self.names == other.names
         )
 
     def __hash__(self):
-        return hash((self.parent, self.names))
+        # cached: jit hashes static fields on every call that takes a model as an argument
+        h = self.__dict__.get("_hash")
+        if h is None:
+            h = self.__dict__["_hash"] = hash((self.parent, self.names))
+        return h
 
     def __repr__(self):
         return f"BodyTree(n_body={self.n_body}, parent={list(self.parent)})"

@@ -1,0 +1,229 @@
+"""Shared helpers of the benchmarks: run stamps, timing, isolated workers (STYLE rule 15).
+
+Nothing here imports JAX: a benchmark's parent process stays free of XLA so that a worker
+that deadlocks or runs out of memory can be killed without taking the record with it.
+"""
+
+import datetime
+import importlib.metadata
+import json
+import os
+import pathlib
+import platform
+import shlex
+import signal
+import statistics
+import subprocess
+import sys
+import time
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
+RESULTS = REPO / "benchmarks" / "results"
+
+__all__ = [
+    "REPO",
+    "RESULTS",
+    "git_stamp",
+    "cpu_model",
+    "core_count",
+    "versions",
+    "stamp",
+    "stamp_markdown",
+    "time_per_call",
+    "run_worker",
+    "markdown_table",
+    "load_average",
+    "mem_available_bytes",
+]
+
+
+# ----------------------------------------------------------------------------- stamps
+def git_stamp(repo: pathlib.Path = REPO) -> dict:
+    """Short commit and dirty flag (read-only git commands only)."""
+
+    def git(*args):
+        out = subprocess.run(["git", *args], cwd=repo, capture_output=True, text=True, timeout=30)
+        if out.returncode:
+            raise RuntimeError(out.stderr.strip())
+        return out.stdout.strip()
+
+    try:
+        commit = git("rev-parse", "--short", "HEAD")
+        dirty = bool(git("status", "--porcelain"))  # untracked files count: they may be imported
+    except (OSError, RuntimeError, subprocess.TimeoutExpired) as e:
+        return {"commit": "unknown", "dirty": None, "git_error": str(e)}
+    return {"commit": commit, "dirty": dirty}
+
+
+def cpu_model() -> str:
+    try:
+        for line in pathlib.Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def core_count() -> int:
+    """Cores this process may run on (affinity), else ``os.cpu_count()``."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def _version(dist):
+    try:
+        return importlib.metadata.version(dist)
+    except importlib.metadata.PackageNotFoundError:
+        return None
+
+
+def versions() -> dict:
+    """Versions of the packages a benchmark depends on, without importing them."""
+    names = ("jax", "jaxlib", "mujoco", "numpy", "equinox", "pin", "jaxbody")
+    out = {n: _version(n) for n in names}
+    out["python"] = platform.python_version()
+    return out
+
+
+def load_average():
+    try:
+        return [round(x, 2) for x in os.getloadavg()]
+    except OSError:  # pragma: no cover
+        return None
+
+
+def mem_available_bytes():
+    try:
+        for line in pathlib.Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
+def stamp(argv=None) -> dict:
+    """Commit, machine, versions, date and the exact command line of this run."""
+    argv = sys.argv if argv is None else argv
+    return {
+        **git_stamp(),
+        "cpu": cpu_model(),
+        "cores": core_count(),
+        "versions": versions(),
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "command": shlex.join([sys.executable, *argv]),
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
+        "load_average_start": load_average(),
+        "hostname": platform.node(),
+    }
+
+
+def stamp_markdown(s: dict) -> str:
+    v = s["versions"]
+    dirty = {True: " (dirty)", False: "", None: " (dirty: unknown)"}[s.get("dirty")]
+    lines = [
+        f"- commit: `{s['commit']}`{dirty}",
+        f"- date: {s['date']}",
+        f"- machine: {s['cpu']}, {s['cores']} cores (host `{s['hostname']}`)",
+        f"- versions: jax {v['jax']}, jaxlib {v['jaxlib']}, mujoco {v['mujoco']}, numpy {v['numpy']}, "
+        f"pinocchio (pin) {v['pin'] or 'absent'}, python {v['python']}",
+        f"- XLA_FLAGS: `{s['xla_flags'] or '(unset)'}`",
+        f"- load average at start / end: {s['load_average_start']} / {s.get('load_average_end')}",
+        f"- command: `{s['command']}`",
+    ]
+    return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------- timing
+def time_per_call(
+    fn,
+    *,
+    min_time: float = 0.2,
+    repeats: int = 7,
+    budget: float | None = None,
+    warmup: bool = True,
+    max_number: int = 1_000_000,
+) -> dict:
+    """Median seconds per call of ``fn()`` (which must block until its result is ready).
+
+    ``fn`` is called once to warm up (unless ``warmup=False``: it has just run), then
+    ``number`` calls per repeat are timed, ``number`` chosen (as ``timeit.autorange``) so
+    that one repeat lasts about ``min_time / repeats``. Slow calls get fewer repeats: no
+    repeat starts once ``budget`` seconds (default ``5 * min_time``) have been spent, so a
+    call of tens of seconds is timed once instead of ``repeats`` times (``repeats`` in the
+    result says how many samples the median has).
+    """
+    budget = 5.0 * min_time if budget is None else budget
+    if warmup:
+        fn()
+    start = time.perf_counter()
+    number, target = 1, max(min_time / repeats, 1e-4)
+    while True:
+        t0 = time.perf_counter()
+        for _ in range(number):
+            fn()
+        dt = time.perf_counter() - t0
+        if dt >= target or number >= max_number:
+            break
+        number = min(max_number, max(number * 2, int(number * target / max(dt, 1e-9) * 1.2)))
+    samples = [dt / number]
+    while len(samples) < repeats and time.perf_counter() - start + dt <= budget:
+        t0 = time.perf_counter()
+        for _ in range(number):
+            fn()
+        dt = time.perf_counter() - t0
+        samples.append(dt / number)
+    return {
+        "median_s": statistics.median(samples),
+        "min_s": min(samples),
+        "max_s": max(samples),
+        "repeats": len(samples),
+        "number": number,
+    }
+
+
+# ----------------------------------------------------------------------------- isolation
+def run_worker(cmd, *, timeout: float, result_file: pathlib.Path, env=None) -> dict:
+    """Run ``cmd`` in its own process group; return the JSON it left in ``result_file``.
+
+    The worker writes its (partial) results to ``result_file`` as it goes. On timeout the
+    whole process group is killed (a deadlocked XLA thread pool cannot hang the benchmark)
+    and whatever the worker had written is returned with ``status = "timeout"``.
+    """
+    result_file = pathlib.Path(result_file)
+    if result_file.exists():
+        result_file.unlink()
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(
+        cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
+    )
+    try:
+        out, err = proc.communicate(timeout=timeout)
+        status = "ok" if proc.returncode == 0 else f"error (exit {proc.returncode})"
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        out, err = proc.communicate()
+        status = "timeout"
+    wall = time.perf_counter() - t0
+    try:
+        result = json.loads(result_file.read_text())
+    except (OSError, ValueError):
+        result = {}
+    result["status"] = status
+    result["worker_wall_s"] = wall
+    if status != "ok":
+        result["stderr_tail"] = (err or "")[-2000:]
+    return result
+
+
+# ----------------------------------------------------------------------------- output
+def markdown_table(headers, rows) -> str:
+    def cell(x):
+        return "" if x is None else str(x).replace("|", "\\|")
+
+    lines = ["| " + " | ".join(headers) + " |", "|" + "|".join("---" for _ in headers) + "|"]
+    lines += ["| " + " | ".join(cell(x) for x in r) + " |" for r in rows]
+    return "\n".join(lines)
