@@ -404,13 +404,16 @@ def worker_batch(cfg, rec):
     for name in cfg["functions"]:
         rec.data["running"] = name
         rec.save()
-        if cfg.get("chunk") and n > cfg["chunk"]:
+        n_dev = cfg.get("devices", 1)
+        if cfg.get("chunk") and n > cfg["chunk"] and n % n_dev == 0:
             import jaxbody as jb
 
-            fn = jb.vmap_chunked(_jaxbody_fn(name), cfg["chunk"], in_axes=(None, 0, 0, 0, 0))
+            fn = jb.vmap_chunked(_jaxbody_fn(name), cfg["chunk"], in_axes=(None, 0, 0, 0, 0),
+                                 devices=n_dev if n_dev > 1 else None)
+            res_form = f"vmap_chunked(chunk={cfg['chunk']}, devices={n_dev})"
         else:
             fn = jax.vmap(_jaxbody_fn(name), in_axes=(None, 0, 0, 0, 0))
-        res_form = f"vmap_chunked(chunk={cfg['chunk']})" if cfg.get("chunk") and n > cfg["chunk"] else "vmap"
+            res_form = "vmap"
         try:
             jitted = jax.jit(fn)
             t0 = time.perf_counter()
@@ -628,7 +631,8 @@ def write_markdown(results, path):
 
     out += ["", "## Batched throughput (states/s)", "",
             "jaxbody: `jit(vmap(f))` over the batch, or `jit(jb.vmap_chunked(f, chunk))` for batches "
-            f"larger than the chunk (chunk = {results.get('chunk', 0)}; 0 = plain vmap) (XLA CPU, its own "
+            f"larger than the chunk (chunk = {results.get('chunk', 0)}; 0 = plain vmap), split over "
+            f"{results.get('devices', 1)} CPU device(s) (XLA CPU, its own "
             "threading). MuJoCo: "
             "`mujoco.batch.Batch.forward` (mj_forward over the batch in C) on 1 thread and on all "
             "cores; `mujoco.rollout` one step (mj_step) on all cores. Ratios are jaxbody "
@@ -739,6 +743,9 @@ def parse_args(argv=None):
     p.add_argument("--batches", help=f"comma-separated batch sizes (default {','.join(map(str, DEFAULT_BATCHES))})")
     p.add_argument("--huge", action="store_true", help=f"also batch {HUGE_BATCH}")
     p.add_argument("--float32", action="store_true", help="jaxbody in float32 (default float64)")
+    p.add_argument("--devices", type=int, default=1,
+                   help="split chunked batches over this many CPU devices (sets "
+                        "--xla_force_host_platform_device_count; 2 = both cores of the CI machine)")
     p.add_argument("--chunk", type=int, default=64,
                    help="batches larger than this run as jb.vmap_chunked(f, CHUNK) (cache-sized chunks); "
                         "0 = plain jax.vmap over the whole batch (default 64)")
@@ -790,6 +797,8 @@ def main(argv=None):
     env = dict(os.environ)
     if not args.keep_xla_flags and XLA_DEFAULT_FLAG not in env.get("XLA_FLAGS", ""):
         env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " " + XLA_DEFAULT_FLAG).strip()
+    if args.devices > 1:
+        env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={args.devices}").strip()
     os.environ["XLA_FLAGS"] = env.get("XLA_FLAGS", "")  # so the stamp records what workers get
     stamp = _common.stamp(sys.argv if argv is None else [sys.argv[0], *argv])
     args.out.mkdir(parents=True, exist_ok=True)
@@ -797,7 +806,7 @@ def main(argv=None):
         "stamp": stamp, "quick": args.quick, "dtype": "float32" if args.float32 else "float64",
         "threads": args.threads, "models": args.models, "batches": args.batches,
         "functions": args.functions, "timeout_s": args.timeout, "min_time_s": args.min_time,
-        "repeats": args.repeats, "chunk": args.chunk, "single": {}, "batch": {},
+        "repeats": args.repeats, "chunk": args.chunk, "devices": args.devices, "single": {}, "batch": {},
     }
     t_start = time.perf_counter()
     print(f"jaxbody dynamics benchmark: models {args.models}, batches {args.batches}, "
@@ -808,7 +817,8 @@ def main(argv=None):
             path = model_path(model, args.models_dir, tmp)
             base = dict(model=model, path=str(path), float32=args.float32, functions=args.functions,
                         min_time=args.min_time, repeats=args.repeats, seed=args.seed,
-                        threads=args.threads, pinocchio=not args.no_pinocchio, chunk=args.chunk)
+                        threads=args.threads, pinocchio=not args.no_pinocchio, chunk=args.chunk,
+                        devices=args.devices)
             jobs = [("single", None)] + [("batch", b) for b in args.batches]
             for kind, b in jobs:
                 cfg = dict(base, batch=b)
