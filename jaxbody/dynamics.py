@@ -27,7 +27,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._types import Array, ArrayLike, Float
-from .augmented import AugmentedBodies, augmented_inertia, static_moment, subtree_mass
+from .augmented import (
+    AugmentedBodies,
+    augmented_inertia,
+    static_moment,
+    subtree_mass,
+    subtree_static_moment,
+)
 from .joints import BALL, FREE, HINGE, SLIDE
 from .kinematics import (
     Kinematics,
@@ -126,7 +132,7 @@ def _composite_about(model: Model, kin: Kinematics, aug: AugmentedBodies, point)
     term = aug.augmented_inertia + 2.0 * xm * eye - mbar[:, :, None] * x[:, None, :] - x[:, :, None] * mbar[:, None, :]
     x2 = jnp.sum(x * x, axis=-1)[:, None, None]
     K = tree.subtree_sum(term) + m[:, None, None] * (x2 * eye - x[:, :, None] * x[:, None, :])
-    h = tree.subtree_sum(mbar) + m[:, None] * x
+    h = subtree_static_moment(tree, mbar) + m[:, None] * x
     return m, h, K
 
 

@@ -7,10 +7,10 @@ base). Bodies are numbered topologically, ``parent[k] < k``.
 Everything here is computed once in NumPy at build time and stored as tuples of Python
 ints, so a :class:`BodyTree` is hashable and can live in an ``eqx.field(static=True)``.
 Traced code uses the small helpers at the bottom (:meth:`BodyTree.subtree_sum`,
-:meth:`BodyTree.carrier_sum`, :meth:`BodyTree.accumulate_from_root` ...): gathers plus
-``jax.ops.segment_sum`` over precomputed index pairs, or a ``fori_loop`` over a static
-number of pointer-jumping steps, so the size of the trace does not depend on the number of
-bodies.
+:meth:`BodyTree.path_sum`, :meth:`BodyTree.accumulate_from_root` ...): products with
+dense static 0/1 matrices (``jax.ops.segment_sum`` over precomputed index pairs for very
+large trees), gathers, or a ``fori_loop`` over a static number of pointer-jumping steps, so
+the size of the trace does not depend on the number of bodies.
 
 Vocabulary of the spec and the names used here:
 
@@ -271,24 +271,6 @@ class BodyTree:
             self._pairs("subtree_pair_body"),
             num_segments=self.n_body,
         )
-
-    def carrier_sum(self, x_pair):
-        """``out[k] = sum_{i in C(k)} x_pair[p(i, k)]`` for values given per carrier pair.
-
-        ``x_pair`` has one row per entry of ``carrier_pair_*`` (use :meth:`carrier_gather` to
-        build it).
-        """
-        x_pair = jnp.asarray(x_pair)
-        if len(self.carrier_pair_body) == 0:
-            return jnp.zeros((self.n_body,) + x_pair.shape[1:], x_pair.dtype)
-        return jax.ops.segment_sum(
-            x_pair, self._pairs("carrier_pair_body"), num_segments=self.n_body,
-            indices_are_sorted=True,
-        )
-
-    def carrier_gather(self, x, which: str):
-        """Gather per-body ``x`` onto carrier pairs; ``which`` is 'ancestor', 'body' or 'child'."""
-        return jnp.asarray(x)[self._pairs(f"carrier_pair_{which}")]
 
     def accumulate_from_root(self, local, combine):
         """Compose per-body values from the root down: ``out[k] = l[root] ∘ ... ∘ l[p(k)] ∘ l[k]``.
