@@ -113,6 +113,7 @@ def worker(cfg):
         if method in LAPACK:
             # Count calls as they complete: on a deadlock the parent kills us and keeps this.
             case["calls_done"] = 0
+            save()
             times = []
             for _ in range(cfg["lapack_calls"]):
                 t0 = time.perf_counter()

@@ -48,6 +48,7 @@ from .dynamics import (
     potential_energy as potential_energy,
     passive_forces as passive_forces,
 )
+from . import linalg as linalg
 from .batching import vmap_chunked as vmap_chunked
 # --- planar systems (planar.py, examples) ---
 from . import planar as planar
