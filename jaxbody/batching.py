@@ -2,9 +2,9 @@
 
 ``jax.vmap`` over a very large batch makes every intermediate array of the dynamics as
 large as the batch; on CPU each stage then streams through main memory instead of cache,
-and throughput *falls* as the batch grows (measured: panda forward dynamics at batch 8192,
-0.063 M states/s with plain ``vmap``, 0.186 M states/s in chunks of 64 —
-``benchmarks/dynamics.py``). :func:`vmap_chunked` maps over cache-sized chunks instead:
+and throughput *falls* as the batch grows (measured at batch 8192, forward dynamics: panda
+81k states/s with plain ``vmap`` and 195k in chunks of 64; chain20 29k and 61k —
+``benchmarks/results/dynamics_plain_vmap.md`` and ``dynamics.md``). :func:`vmap_chunked` maps over cache-sized chunks instead:
 ``vmap`` inside a chunk, a sequential loop over chunks (``jax.lax.map`` with
 ``batch_size``). It is ``jit``-, ``grad``- and nested-``vmap``-compatible.
 
