@@ -1,12 +1,14 @@
 """jaxbody: differentiable multibody dynamics in JAX.
 
 Augmented-body equations of rigid-body trees (Telegin) and Maggi's equations in
-quasi-coordinates (Byachkov); see ``shared/spec/equations.md`` for the mathematics.
+quasi-coordinates (Byachkov). One engine with one state: a :class:`Model` (or a planar
+system), the state pytree :class:`Data` computed once by :func:`compute_data`, and kernels
+``jb.kernels.*(model, data, ...)``; the functions ``jb.mass_matrix(model, q)`` ... are those
+kernels behind one input check (:func:`check_inputs`). Conventions: ``docs/conventions.md``.
 The library never changes global JAX configuration on import; enable float64 with
 ``jax.config.update("jax_enable_x64", True)`` for accuracy work.
 """
 
-from . import tree as tree
 from .tree import BodyTree as BodyTree
 from .joints import (
     FREE as FREE,
@@ -19,7 +21,8 @@ from .joints import (
     Hinge as Hinge,
     JointLayout as JointLayout,
 )
-from .model import Model as Model, ModelBuilder as ModelBuilder, validate_parameters as validate_parameters
+from .model import Model as Model, ModelBuilder as ModelBuilder
+from .validation import check_inputs as check_inputs, validate_parameters as validate_parameters
 from .augmented import (
     AugmentedBodies as AugmentedBodies,
     subtree_mass as subtree_mass,
@@ -28,9 +31,11 @@ from .augmented import (
     augmented_moment_of_inertia as augmented_moment_of_inertia,
 )
 
-# --- spatial engine (dynamics.py, kinematics.py, spatial.py) ---
+# --- spatial engine (kinematics.py, spatial.py, data.py, kernels.py, dynamics.py) ---
 from . import kinematics as kinematics
 from . import spatial as spatial
+from . import kernels as kernels
+from .data import Data as Data, compute_data as compute_data
 from .kinematics import (
     forward_kinematics as forward_kinematics,
     qpos_rate as qpos_rate,
@@ -50,9 +55,10 @@ from .dynamics import (
 )
 from . import linalg as linalg
 from .batching import vmap_chunked as vmap_chunked
-# --- planar systems (planar.py, examples) ---
+# --- planar systems (planar/, examples/) and design (design.py) ---
 from . import planar as planar
 from . import examples as examples
+from . import design as design
 # --- simulation (simulate.py) ---
 from .simulate import DynamicalSystem as DynamicalSystem, Solution as Solution, simulate as simulate
 # --- import (io/mujoco.py) ---

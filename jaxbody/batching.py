@@ -6,7 +6,10 @@ and throughput *falls* as the batch grows (measured at batch 8192, forward dynam
 81k states/s with plain ``vmap`` and 195k in chunks of 64; chain20 29k and 61k —
 ``benchmarks/results/dynamics_plain_vmap.md`` and ``dynamics.md``). :func:`vmap_chunked` maps over cache-sized chunks instead:
 ``vmap`` inside a chunk, a sequential loop over chunks (``jax.lax.map`` with
-``batch_size``). It is ``jit``-, ``grad``- and nested-``vmap``-compatible.
+``batch_size``). It is ``jit``-, ``grad``- and nested-``vmap``-compatible, and compiled: the
+returned function is an ``equinox.filter_jit`` of the chunked map, so calling it again with
+arrays of the same shapes reuses the compilation (keep the returned function; a new
+``vmap_chunked(fn)`` is a new function and compiles again).
 
 XLA runs these batched loops on one CPU thread. With ``devices=N`` the batch is split over
 ``N`` local devices (``jax.shard_map``) and each device runs its chunks; on a CPU machine
@@ -17,6 +20,7 @@ make the cores visible as devices first, before JAX starts:
 
 from collections.abc import Callable, Sequence
 
+import equinox as eqx
 import jax
 import numpy as np
 from jax.sharding import Mesh, PartitionSpec
@@ -41,7 +45,8 @@ def vmap_chunked(
             size must be a multiple of their number. ``None``: one device.
 
     Returns:
-        A function with the signature of ``fn`` whose outputs have a leading batch axis.
+        A compiled function (``equinox.filter_jit``) with the signature of ``fn`` whose outputs
+        have a leading batch axis; repeated calls with the same shapes do not re-trace.
 
     Raises:
         ValueError: bad ``chunk_size``/``in_axes``, more devices asked for than exist, or a
@@ -72,13 +77,13 @@ def vmap_chunked(
                             f"vmap_chunked: batch of {size} does not split over {n_dev} devices"
                         )
             specs = tuple(PartitionSpec("batch") if ax == 0 else PartitionSpec() for ax in axes)
-            # check_vma=False: eqx.error_if inside fn uses a cond whose branches differ in
-            # "varying" type; every output here is batch-sharded anyway
+            # check_vma=False: an eqx.error_if inside fn (a public boundary check) uses a cond
+            # whose branches differ in "varying" type; every output here is batch-sharded anyway
             return jax.shard_map(
                 inner, mesh=mesh, in_specs=specs, out_specs=PartitionSpec("batch"), check_vma=False
             )(*args)
 
-        return sharded
+        return eqx.filter_jit(sharded)
 
     def wrapped(*args):
         axes = in_axes if isinstance(in_axes, (list, tuple)) else (in_axes,) * len(args)
@@ -98,4 +103,4 @@ def vmap_chunked(
 
         return jax.lax.map(one, mapped, batch_size=chunk_size)
 
-    return wrapped
+    return eqx.filter_jit(wrapped)

@@ -21,10 +21,12 @@ the frame tree used by the kinematics) as tuples of Python ints: hashable, compu
 import dataclasses
 from collections.abc import Sequence
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from ._types import ScalarLike, VectorLike
-
+from ._util import index, int_tuple
 from .tree import BodyTree
 
 __all__ = [
@@ -32,6 +34,8 @@ __all__ = [
     "BALL",
     "SLIDE",
     "HINGE",
+    "JointKind",
+    "JOINT_KINDS",
     "JOINT_KIND_NAMES",
     "JOINT_NQ",
     "JOINT_NV",
@@ -43,9 +47,42 @@ __all__ = [
 ]
 
 FREE, BALL, SLIDE, HINGE = 0, 1, 2, 3
-JOINT_KIND_NAMES = {FREE: "free", BALL: "ball", SLIDE: "slide", HINGE: "hinge"}
-JOINT_NQ = {FREE: 7, BALL: 4, SLIDE: 1, HINGE: 1}
-JOINT_NV = {FREE: 6, BALL: 3, SLIDE: 1, HINGE: 1}
+
+
+@dataclasses.dataclass(frozen=True)
+class JointKind:
+    """Static description of one joint kind: the table every per-kind dispatch reads.
+
+    Attributes:
+        code: MuJoCo ``mjtJoint`` number.
+        name: ``"free"``, ``"ball"``, ``"slide"`` or ``"hinge"``.
+        nq, nv: sizes in ``q`` and ``v``.
+        translation: number of leading translational coordinates (``q = v`` for them).
+        quaternion: offset in ``q`` of the joint's unit quaternion, ``None`` if it has none.
+        dof_is_rotation: per DoF, 1 if it rotates the body (hinge, ball, free rotation).
+        dof_component: per DoF, the axis index of a ball/free DoF (0 for hinge and slide).
+    """
+
+    code: int
+    name: str
+    nq: int
+    nv: int
+    translation: int
+    quaternion: int | None
+    dof_is_rotation: tuple[int, ...]
+    dof_component: tuple[int, ...]
+
+
+#: the per-kind table, in the order every dispatch loop visits the kinds
+JOINT_KINDS = {
+    HINGE: JointKind(HINGE, "hinge", 1, 1, 0, None, (1,), (0,)),
+    SLIDE: JointKind(SLIDE, "slide", 1, 1, 1, None, (0,), (0,)),
+    BALL: JointKind(BALL, "ball", 4, 3, 0, 0, (1, 1, 1), (0, 1, 2)),
+    FREE: JointKind(FREE, "free", 7, 6, 3, 3, (0, 0, 0, 1, 1, 1), (0, 1, 2, 0, 1, 2)),
+}
+JOINT_KIND_NAMES = {c: k.name for c, k in JOINT_KINDS.items()}
+JOINT_NQ = {c: k.nq for c, k in JOINT_KINDS.items()}
+JOINT_NV = {c: k.nv for c, k in JOINT_KINDS.items()}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -98,12 +135,12 @@ class Free(_JointSpec):
     kind: int = dataclasses.field(default=FREE, init=False)
 
 
-def _t(a) -> tuple[int, ...]:
-    return tuple(int(v) for v in np.asarray(a, dtype=np.int64).reshape(-1).tolist())
-
-
 class JointLayout:
-    """Static joint and DoF structure of a model (hashable; STYLE rule 4).
+    """Static joint and DoF structure of a model (immutable and hashable; STYLE rule 4).
+
+    Every index array is built at construction; the traced helpers (:meth:`support_sum`,
+    :meth:`before_sum`, :meth:`mass_mask`, :meth:`kind_groups`) follow the tree's traversal
+    and build their 0/1 matrices inside the program from length-``nv`` index vectors.
 
     Args:
         tree: the body tree.
@@ -124,8 +161,8 @@ class JointLayout:
         joint_body: Sequence[int],
         joint_names: Sequence[str] | None = None,
     ):
-        joint_type = _t(joint_type)
-        joint_body = _t(joint_body)
+        joint_type = int_tuple(joint_type)
+        joint_body = int_tuple(joint_body)
         nj = len(joint_type)
         if len(joint_body) != nj:
             raise ValueError(
@@ -153,18 +190,25 @@ class JointLayout:
                     raise ValueError(
                         f"{label}: a free joint must be the only joint of body {body} ({tree.names[body]!r})"
                     )
-        self.tree = tree
-        self.type = joint_type
-        self.body = joint_body
-        self.names = joint_names
-        self._build()
+        fields = dict(tree=tree, type=joint_type, body=joint_body, names=joint_names)
+        fields.update(_layout_arrays(tree, joint_type, joint_body))
+        # jit hashes static fields on every call that takes a model: hash once here
+        fields["_hash"] = hash((tree, joint_type, joint_body, joint_names))
+        for k, v in fields.items():
+            object.__setattr__(self, k, v)
+
+    def __setattr__(self, name, value):
+        raise AttributeError("JointLayout is immutable")
+
+    def __delattr__(self, name):
+        raise AttributeError("JointLayout is immutable")
 
     def __eq__(self, other):
         if self is other:
             return True
         return (
             isinstance(other, JointLayout)
-            and hash(self) == hash(other)
+            and self._hash == other._hash
             and self.tree == other.tree
             and self.type == other.type
             and self.body == other.body
@@ -172,11 +216,7 @@ class JointLayout:
         )
 
     def __hash__(self):
-        # cached: jit hashes static fields on every call that takes a model as an argument
-        h = self.__dict__.get("_hash")
-        if h is None:
-            h = self.__dict__["_hash"] = hash((self.tree, self.type, self.body, self.names))
-        return h
+        return self._hash
 
     def __repr__(self):
         kinds = [JOINT_KIND_NAMES[k] for k in self.type]
@@ -186,148 +226,157 @@ class JointLayout:
     def n_joint(self) -> int:
         return len(self.type)
 
-    def _pair_matrix(self, name, rows, cols, pairs, transpose=False):
-        cache = self.__dict__.setdefault("_dense_cache", {})
-        if name not in cache:
-            m = np.zeros((rows, cols), dtype=np.float64)
-            a, b = (np.asarray(x, dtype=np.int64) for x in pairs)
-            if a.size:
-                if transpose:
-                    m[b, a] = 1.0
-                else:
-                    m[a, b] = 1.0
-            cache[name] = m
-        return cache[name]
+    def kind_groups(self):
+        """``(kind, joints, qposadr, dofadr)`` for each joint kind present, as NumPy index arrays.
 
-    @property
-    def support_matrix(self) -> np.ndarray:
-        """``S[k, d] = 1`` iff DoF ``d`` moves body ``k`` (dense view of ``dof_support_pairs``)."""
-        return self._pair_matrix("support", self.tree.n_body, self.nv, self.dof_support_pairs, True)
+        The one dispatch over joint kinds: kinematics, ``q`` integration and springs loop
+        over these groups (a static Python loop over at most four kinds).
+        """
+        types = np.asarray(self.type, dtype=np.int64)
+        qadr = np.asarray(self.qposadr, dtype=np.int64)
+        dadr = np.asarray(self.dofadr, dtype=np.int64)
+        out = []
+        for code, kind in JOINT_KINDS.items():
+            js = np.nonzero(types == code)[0]
+            if js.size:
+                out.append((kind, js, qadr[js], dadr[js]))
+        return out
 
-    @property
-    def before_matrix(self) -> np.ndarray:
-        """``B[d, e] = 1`` iff DoF ``e`` comes before DoF ``d`` (dense ``dof_before_pairs``)."""
-        return self._pair_matrix("before", self.nv, self.nv, self.dof_before_pairs, True)
+    # ------------------------------------------------------------------ traced helpers
+    def _support(self, dtype):
+        """``S[k, d] = 1`` iff DoF ``d`` moves body ``k`` (built in the program)."""
+        db = jnp.asarray(index(self.dof_body))
+        return self.tree.ancestor_or_self(db[None, :], jnp.arange(self.tree.n_body, dtype=jnp.int32)[:, None]).astype(dtype)
 
-    @property
-    def mass_mask(self) -> np.ndarray:
-        """``U[a, b] = 1`` for the upper-triangle pairs of ``mass_pairs`` (a ≤ b, a supports b)."""
-        return self._pair_matrix("mass", self.nv, self.nv, self.mass_pairs)
+    def _before(self, dtype):
+        """``B[d, e] = 1`` iff DoF ``e`` comes before DoF ``d`` (see ``dof_before_pairs``)."""
+        db = jnp.asarray(index(self.dof_body))
+        dj = jnp.asarray(index(self.dof_joint))
+        rot = jnp.asarray(index(self.dof_is_rotation))
+        free = jnp.asarray(index([int(self.type[j] == FREE) for j in self.dof_joint]))
+        d, e = (slice(None), None), (None, slice(None))
+        same_body = db[d] == db[e]
+        strict_ancestor = self.tree.ancestor_or_self(db[e], db[d]) & ~same_body
+        earlier_joint = same_body & (dj[e] < dj[d])
+        free_translation = (dj[e] == dj[d]) & (free[d] == 1) & (rot[e] == 0) & (rot[d] == 1)
+        return (strict_ancestor | earlier_joint | free_translation).astype(dtype)
 
-    def _build(self):
-        tree = self.tree
-        nb, nj = tree.n_body, len(self.type)
-        qposadr, dofadr = [], []
-        nq = nv = 0
-        dof_joint, dof_body = [], []
-        for j, kind in enumerate(self.type):
-            qposadr.append(nq)
-            dofadr.append(nv)
-            nq += JOINT_NQ[kind]
-            nv += JOINT_NV[kind]
-            dof_joint += [j] * JOINT_NV[kind]
-            dof_body += [self.body[j]] * JOINT_NV[kind]
-        self.qposadr = tuple(qposadr)
-        self.dofadr = tuple(dofadr)
-        self.nq = nq
-        self.nv = nv
-        self.dof_joint = tuple(dof_joint)
-        self.dof_body = tuple(dof_body)
-        body_first = [-1] * nb
-        body_njnt = [0] * nb
-        for j, b in enumerate(self.body):
-            if body_first[b] < 0:
-                body_first[b] = j
-            body_njnt[b] += 1
-        self.body_first_joint = tuple(body_first)
-        self.body_joint_count = tuple(body_njnt)
-        self.body_is_free = tuple(
-            int(body_first[b] >= 0 and self.type[body_first[b]] == FREE) for b in range(nb)
-        )
-        # Rotational part of each DoF: 1 for hinge/ball/free-rotation, 0 for slide/free-translation.
-        dof_rot, dof_sub = [], []
-        for j, kind in enumerate(self.type):
-            if kind == HINGE:
-                dof_rot += [1]
-                dof_sub += [0]
-            elif kind == SLIDE:
-                dof_rot += [0]
-                dof_sub += [0]
-            elif kind == BALL:
-                dof_rot += [1, 1, 1]
-                dof_sub += [0, 1, 2]
+    def mass_mask(self, dtype):
+        """``U[a, b] = 1`` for ``a <= b`` with body(a) supporting body(b) (upper triangle of ``M``)."""
+        db = jnp.asarray(index(self.dof_body))
+        ids = jnp.arange(self.nv, dtype=jnp.int32)
+        upper = ids[:, None] <= ids[None, :]
+        return (upper & self.tree.ancestor_or_self(db[:, None], db[None, :])).astype(dtype)
+
+    def support_sum(self, x):
+        """``out[k] = sum_d S[k, d] x[d]``: sum over the DoFs that move body ``k``. ``x``: (nv, ...)."""
+        if self.tree.traversal == "dense":
+            return jnp.tensordot(self._support(x.dtype), x, axes=1)
+        d, k = (jnp.asarray(index(a)) for a in self.dof_support_pairs)
+        return jax.ops.segment_sum(x[d], k, num_segments=self.tree.n_body)
+
+    def before_sum(self, x):
+        """``out[d] = sum_e B[d, e] x[e]``: sum over the DoFs that come before DoF ``d``."""
+        if self.tree.traversal == "dense":
+            return jnp.tensordot(self._before(x.dtype), x, axes=1)
+        e, d = (jnp.asarray(index(a)) for a in self.dof_before_pairs)
+        return jax.ops.segment_sum(x[e], d, num_segments=self.nv)
+
+
+def _layout_arrays(tree: BodyTree, types: tuple[int, ...], bodies: tuple[int, ...]) -> dict:
+    """Every static index array of a joint layout (NumPy, at construction)."""
+    nb, nj = tree.n_body, len(types)
+    qposadr, dofadr, dof_joint, dof_body, dof_rot, dof_sub = [], [], [], [], [], []
+    nq = nv = 0
+    for j, code in enumerate(types):
+        kind = JOINT_KINDS[code]
+        qposadr.append(nq)
+        dofadr.append(nv)
+        nq += kind.nq
+        nv += kind.nv
+        dof_joint += [j] * kind.nv
+        dof_body += [bodies[j]] * kind.nv
+        dof_rot += list(kind.dof_is_rotation)
+        dof_sub += list(kind.dof_component)
+    body_first = [-1] * nb
+    body_njnt = [0] * nb
+    for j, b in enumerate(bodies):
+        if body_first[b] < 0:
+            body_first[b] = j
+        body_njnt[b] += 1
+    anc = tree.carrier_mask  # anc[i, k]: i strict ancestor of k
+
+    # "before" pairs (d', d): the motion of d' changes the world axis of d (axis derivative).
+    # d' is on a strict ancestor body, or on an earlier joint of the same body; the free
+    # joint's translation comes before its rotation (MuJoCo's cdof_dot convention).
+    before_a, before_b = [], []
+    for d in range(nv):
+        bd, jd = dof_body[d], dof_joint[d]
+        for e in range(nv):
+            be, je = dof_body[e], dof_joint[e]
+            if anc[be, bd] or (be == bd and je < jd):
+                before = True
+            elif je == jd and types[jd] == FREE:
+                before = dof_rot[e] == 0 and dof_rot[d] == 1
             else:
-                dof_rot += [0, 0, 0, 1, 1, 1]
-                dof_sub += [0, 1, 2, 0, 1, 2]
-        self.dof_is_rotation = tuple(dof_rot)
-        self.dof_component = tuple(dof_sub)
-        anc = tree.carrier_mask  # anc[i, k]: i strict ancestor of k
+                before = False
+            if before:
+                before_a.append(e)
+                before_b.append(d)
 
-        # "before" pairs (d', d): the motion of d' changes the world axis of d (axis derivative).
-        # d' is on a strict ancestor body, or on an earlier joint of the same body; the free
-        # joint's translation comes before its rotation (MuJoCo's cdof_dot convention).
-        before_a, before_b = [], []
+    # "support" pairs (d, k): DoF d moves body k (body(d) is k or a carrier of k).
+    sup_d, sup_k = [], []
+    for k in range(nb):
         for d in range(nv):
-            bd, jd = dof_body[d], dof_joint[d]
-            for e in range(nv):
-                be, je = dof_body[e], dof_joint[e]
-                if anc[be, bd] or (be == bd and je < jd):
-                    before = True
-                elif je == jd and self.type[jd] == FREE:
-                    before = dof_rot[e] == 0 and dof_rot[d] == 1
-                else:
-                    before = False
-                if before:
-                    before_a.append(e)
-                    before_b.append(d)
-        self.dof_before_pairs = (tuple(before_a), tuple(before_b))
+            if dof_body[d] == k or anc[dof_body[d], k]:
+                sup_d.append(d)
+                sup_k.append(k)
 
-        # "support" pairs (d, k): DoF d moves body k (body(d) is k or a carrier of k).
-        sup_d, sup_k = [], []
-        for k in range(nb):
-            for d in range(nv):
-                if dof_body[d] == k or anc[dof_body[d], k]:
-                    sup_d.append(d)
-                    sup_k.append(k)
-        self.dof_support_pairs = (tuple(sup_d), tuple(sup_k))
-
-        # mass-matrix pairs (a, b), a <= b, nonzero block: body(a) supports body(b)
-        ma, mb = [], []
-        for b in range(nv):
-            for a in range(b + 1):
-                if dof_body[a] == dof_body[b] or anc[dof_body[a], dof_body[b]]:
-                    ma.append(a)
-                    mb.append(b)
-        self.mass_pairs = (tuple(ma), tuple(mb))
-
-        # Frame tree for the kinematics: for each body an "offset" node (body_pos, body_quat
-        # relative to the parent's final frame) followed by one node per joint.
-        node_parent, node_body, node_joint = [], [], []
-        body_last_node = [-1] * nb
-        body_offset_node = [-1] * nb
-        for b in range(nb):
-            p = tree.parent[b]
-            node_parent.append(body_last_node[p] if p >= 0 else -1)
-            node_body.append(b)
-            node_joint.append(-1)
-            body_offset_node[b] = len(node_parent) - 1
-            last = body_offset_node[b]
-            for j in range(nj):
-                if self.body[j] == b:
-                    node_parent.append(last)
-                    node_body.append(b)
-                    node_joint.append(j)
-                    last = len(node_parent) - 1
-            body_last_node[b] = last
-        self.frame_tree = BodyTree(node_parent)
-        self.node_body = tuple(node_body)
-        self.node_joint = tuple(node_joint)
-        self.body_last_node = tuple(body_last_node)
-        self.body_offset_node = tuple(body_offset_node)
-        joint_node = [0] * nj
-        for n_, j in enumerate(node_joint):
-            if j >= 0:
-                joint_node[j] = n_
-        self.joint_node = tuple(joint_node)
+    # Frame tree for the kinematics: for each body an "offset" node (body_pos, body_quat
+    # relative to the parent's final frame) followed by one node per joint.
+    node_parent, node_body, node_joint = [], [], []
+    body_last_node = [-1] * nb
+    body_offset_node = [-1] * nb
+    for b in range(nb):
+        p = tree.parent[b]
+        node_parent.append(body_last_node[p] if p >= 0 else -1)
+        node_body.append(b)
+        node_joint.append(-1)
+        body_offset_node[b] = len(node_parent) - 1
+        last = body_offset_node[b]
+        for j in range(nj):
+            if bodies[j] == b:
+                node_parent.append(last)
+                node_body.append(b)
+                node_joint.append(j)
+                last = len(node_parent) - 1
+        body_last_node[b] = last
+    joint_node = [0] * nj
+    for n_, j in enumerate(node_joint):
+        if j >= 0:
+            joint_node[j] = n_
+    return dict(
+        qposadr=tuple(qposadr),
+        dofadr=tuple(dofadr),
+        nq=nq,
+        nv=nv,
+        dof_joint=tuple(dof_joint),
+        dof_body=tuple(dof_body),
+        dof_is_rotation=tuple(dof_rot),
+        dof_component=tuple(dof_sub),
+        body_first_joint=tuple(body_first),
+        body_joint_count=tuple(body_njnt),
+        body_is_free=tuple(
+            int(body_first[b] >= 0 and types[body_first[b]] == FREE) for b in range(nb)
+        ),
+        dof_before_pairs=(tuple(before_a), tuple(before_b)),
+        dof_support_pairs=(tuple(sup_d), tuple(sup_k)),
+        frame_tree=BodyTree(node_parent, traversal=tree.traversal),
+        node_body=tuple(node_body),
+        node_joint=tuple(node_joint),
+        body_last_node=tuple(body_last_node),
+        body_offset_node=tuple(body_offset_node),
+        joint_node=tuple(joint_node),
         # the node holding the frame just before joint j
-        self.joint_pre_node = tuple(node_parent[joint_node[j]] for j in range(nj))
+        joint_pre_node=tuple(node_parent[joint_node[j]] for j in range(nj)),
+    )

@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._types import Array, ArrayLike, Float
+from ._util import check_shape, index, quat_multiply, quat_to_matrix, skew
 from .joints import BALL, FREE, HINGE, SLIDE
 from .model import Model
 
@@ -40,6 +41,7 @@ __all__ = [
     "body_accelerations",
     "point_velocity",
     "point_acceleration",
+    "rigid_body_kinetic_energy",
     "qpos_rate",
     "integrate_qpos",
     "normalize_qpos",
@@ -50,44 +52,10 @@ def cross(a, b):
     return jnp.cross(a, b)
 
 
-def quat_to_matrix(q: Float[ArrayLike, "*b 4"]) -> Float[Array, "*b 3 3"]:
-    """Rotation matrix of a quaternion (w, x, y, z), normalised first (gradient-safe at 0)."""
-    n2 = jnp.sum(q * q, axis=-1, keepdims=True)
-    safe = jnp.where(n2 > 0, n2, 1.0)
-    q = q / jnp.sqrt(safe)
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    r = jnp.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        axis=-1,
-    )
-    return r.reshape(q.shape[:-1] + (3, 3))
-
-
-def quat_multiply(a: Float[ArrayLike, "*b 4"], b: Float[ArrayLike, "*b 4"]) -> Float[Array, "*b 4"]:
-    """Hamilton product ``a ⊗ b`` of (w, x, y, z) quaternions."""
-    aw, ax, ay, az = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
-    bw, bx, by, bz = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
-    return jnp.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        axis=-1,
-    )
-
-
 def axis_angle_matrix(axis: Float[ArrayLike, "*b 3"], angle: Float[ArrayLike, "*b"]) -> Float[Array, "*b 3 3"]:
     """Rodrigues' rotation about a unit ``axis`` by ``angle``."""
     c, s = jnp.cos(angle)[..., None, None], jnp.sin(angle)[..., None, None]
-    x, y, z = axis[..., 0], axis[..., 1], axis[..., 2]
-    zero = jnp.zeros_like(x)
-    k = jnp.stack([zero, -z, y, z, zero, -x, -y, x, zero], axis=-1).reshape(axis.shape[:-1] + (3, 3))
+    k = skew(axis)
     eye = jnp.eye(3, dtype=axis.dtype)
     return eye + s * k + (1 - c) * (k @ k)
 
@@ -118,10 +86,6 @@ class Kinematics(eqx.Module):
     dof_anchor: Float[Array, "nv 3"]
 
 
-def _idx(seq):
-    return np.asarray(seq, dtype=np.int32)
-
-
 def _local_frames(model: Model, q):
     """Local rotation/translation of every frame-tree node (offset nodes and joint nodes)."""
     joints = model.joints
@@ -129,38 +93,32 @@ def _local_frames(model: Model, q):
     n_node = joints.frame_tree.n_body
     R = jnp.zeros((n_node, 3, 3), dtype)
     t = jnp.zeros((n_node, 3), dtype)
-    nb = model.n_body
     free_body = np.asarray(joints.body_is_free, dtype=bool)
-    off = _idx(joints.body_offset_node)
+    off = index(joints.body_offset_node)
+    # a free body's pose is all in q: MuJoCo ignores body_pos/body_quat there
     Roff = quat_to_matrix(model.body_quat)
     Roff = jnp.where(free_body[:, None, None], jnp.eye(3, dtype=dtype), Roff)
     toff = jnp.where(free_body[:, None], 0.0, model.body_pos)
     R = R.at[off].set(Roff)
     t = t.at[off].set(toff)
-    types = np.asarray(joints.type, dtype=np.int64)
-    qadr = np.asarray(joints.qposadr, dtype=np.int64)
     jnode = np.asarray(joints.joint_node, dtype=np.int64)
-    for kind in (HINGE, SLIDE, BALL, FREE):  # static loop over joint kinds
-        js = np.nonzero(types == kind)[0]
-        if js.size == 0:
-            continue
-        a = qadr[js]
+    for kind, js, a, _ in joints.kind_groups():
         p = model.joint_pos[js]
-        if kind == HINGE:
+        if kind.code == HINGE:
+            # hinge and slide act relative to qpos0, as MuJoCo's mj_kinematics
             Rj = axis_angle_matrix(model.joint_axis[js], q[a] - model.qpos0[a])
             tj = p - jnp.einsum("nij,nj->ni", Rj, p)
-        elif kind == SLIDE:
+        elif kind.code == SLIDE:
             Rj = jnp.broadcast_to(jnp.eye(3, dtype=dtype), (js.size, 3, 3))
             tj = model.joint_axis[js] * (q[a] - model.qpos0[a])[:, None]
-        elif kind == BALL:
-            Rj = quat_to_matrix(q[a[:, None] + np.arange(4)])
+        elif kind.code == BALL:
+            Rj = quat_to_matrix(q[a[:, None] + kind.quaternion + np.arange(4)])
             tj = p - jnp.einsum("nij,nj->ni", Rj, p)
         else:
-            Rj = quat_to_matrix(q[a[:, None] + 3 + np.arange(4)])
+            Rj = quat_to_matrix(q[a[:, None] + kind.quaternion + np.arange(4)])
             tj = q[a[:, None] + np.arange(3)]
         R = R.at[jnode[js]].set(Rj)
         t = t.at[jnode[js]].set(tj)
-    del nb
     return R, t
 
 
@@ -176,12 +134,10 @@ def forward_kinematics(model: Model, q: Float[ArrayLike, " nq"]) -> Kinematics:
     Follows MuJoCo's ``mj_kinematics`` and ``mj_comPos`` conventions (DESIGN.md).
     """
     joints = model.joints
-    q = jnp.asarray(q, model.body_pos.dtype)
-    if q.shape != (model.nq,):
-        raise ValueError(f"q has shape {q.shape}, expected ({model.nq},)")
+    q = check_shape(q, (model.nq,), "q", dtype=model.body_pos.dtype)
     R_loc, t_loc = _local_frames(model, q)
     R_w, t_w = joints.frame_tree.accumulate_from_root((R_loc, t_loc), _compose)
-    last = _idx(joints.body_last_node)
+    last = index(joints.body_last_node)
     body_R, body_x = R_w[last], t_w[last]
     com = body_x + jnp.einsum("nij,nj->ni", body_R, model.body_com)
     I_c = body_R @ model.body_inertia @ jnp.swapaxes(body_R, -1, -2)
@@ -189,8 +145,8 @@ def forward_kinematics(model: Model, q: Float[ArrayLike, " nq"]) -> Kinematics:
     nj = model.n_joint
     dtype = body_x.dtype
     if nj:
-        pre = _idx(joints.joint_pre_node)
-        jbody = _idx(joints.body)
+        pre = index(joints.joint_pre_node)
+        jbody = index(joints.body)
         types = np.asarray(joints.type)
         is_free = types == FREE
         anchor = jnp.einsum("nij,nj->ni", R_w[pre], model.joint_pos) + t_w[pre]
@@ -201,8 +157,8 @@ def forward_kinematics(model: Model, q: Float[ArrayLike, " nq"]) -> Kinematics:
         axis = jnp.zeros((0, 3), dtype)
 
     # DoF motions: (angular part, pure linear part, anchor point)
-    dof_joint = _idx(joints.dof_joint)
-    dof_body = _idx(joints.dof_body)
+    dof_joint = index(joints.dof_joint)
+    dof_body = index(joints.dof_body)
     comp = np.asarray(joints.dof_component)
     rot = np.asarray(joints.dof_is_rotation, dtype=bool)
     dtypes = np.asarray(joints.type)[dof_joint] if joints.nv else np.zeros(0, int)
@@ -268,6 +224,21 @@ class BodyMotion(eqx.Module):
     reference_point: Float[Array, "n_body 3"]
 
 
+def rigid_body_kinetic_energy(
+    mass: Float[ArrayLike, " n_body"],
+    com_velocity: Float[ArrayLike, "n_body 3"],
+    angular_velocity: Float[ArrayLike, "n_body 3"],
+    central_inertia: Float[ArrayLike, "n_body 3 3"],
+) -> Float[Array, ""]:
+    """``T = sum_k ½ m_k |v_Ck|² + ½ ω_k·I_Ck ω_k`` body by body (König's theorem).
+
+    The one kinetic-energy formula of the package: planar systems call it with ``ω`` along
+    ``k`` and ``I_Ck`` acting on that axis.
+    """
+    t = 0.5 * jnp.sum(mass * jnp.sum(com_velocity * com_velocity, axis=-1))
+    return t + 0.5 * jnp.sum(angular_velocity * jnp.einsum("nij,nj->ni", central_inertia, angular_velocity))
+
+
 def point_velocity(motion: BodyMotion, points):
     """Velocity of the material points of each body located at ``points`` (n_body, 3)."""
     return motion.velocity + cross(motion.angular_velocity, points - motion.reference_point)
@@ -294,14 +265,11 @@ def dof_motion_plucker(kin: Kinematics, c0):
     return kin.dof_angular, kin.dof_linear + cross(kin.dof_angular, c0 - kin.dof_anchor)
 
 
-def _dense(matrix, x):
-    return jnp.tensordot(jnp.asarray(matrix, x.dtype), x, axes=1)
-
-
 def body_velocities(model: Model, kin: Kinematics, v: Float[ArrayLike, " nv"]):
     """Angular velocity of every body and the velocity of its base point.
 
-    Sums over the supporting DoFs: ``ω_k = sum_d S[k, d] ω_d v_d`` (a dense static product).
+    Sums over the supporting DoFs: ``ω_k = sum_d S[k, d] ω_d v_d``
+    (:meth:`~jaxbody.joints.JointLayout.support_sum`).
     """
     nb = model.n_body
     if model.nv == 0:
@@ -309,9 +277,8 @@ def body_velocities(model: Model, kin: Kinematics, v: Float[ArrayLike, " nv"]):
         return z, z
     c0 = reference_point(kin)
     ang, lin0 = dof_motion_plucker(kin, c0)
-    sup = model.joints.support_matrix
-    w = _dense(sup, ang * v[:, None])
-    u0 = _dense(sup, lin0 * v[:, None])
+    w = model.joints.support_sum(ang * v[:, None])
+    u0 = model.joints.support_sum(lin0 * v[:, None])
     return w, u0 + cross(w, kin.base_point - c0)
 
 
@@ -334,49 +301,41 @@ def body_accelerations(
         return BodyMotion(z, z, z, z, ref)
     ang, lin0 = dof_motion_plucker(kin, c0)
     sv_ang, sv_lin = ang * v[:, None], lin0 * v[:, None]
-    sup = joints.support_matrix
-    w = _dense(sup, sv_ang)
-    u0 = _dense(sup, sv_lin)
-    # motion of the frame just before each DoF, then Ṡ_d = (Ω×ω_d, Ω×s_d + V×ω_d) (crm at c0)
-    bef = joints.before_matrix
-    Om = _dense(bef, sv_ang)
-    V0 = _dense(bef, sv_lin)
+    w = joints.support_sum(sv_ang)
+    u0 = joints.support_sum(sv_lin)
+    # Motion (Ω, V) of the frame just before each DoF; the DoF's axis moves with that frame, so
+    # Ṡ_d = (Ω×ω_d, Ω×s_d + V×ω_d): the spatial cross product at c0 (MuJoCo's cdof_dot).
+    Om = joints.before_sum(sv_ang)
+    V0 = joints.before_sum(sv_lin)
     ang_dot = cross(Om, ang)
     lin_dot = cross(Om, lin0) + cross(V0, ang)
-    eps = _dense(sup, ang * a[:, None] + ang_dot * v[:, None])
-    acc = _dense(sup, lin0 * a[:, None] + lin_dot * v[:, None])
+    eps = joints.support_sum(ang * a[:, None] + ang_dot * v[:, None])
+    acc = joints.support_sum(lin0 * a[:, None] + lin_dot * v[:, None])
     return BodyMotion(w, u0, eps, acc, ref)
 
 
 # ----------------------------------------------------------------------------- q integration
 def qpos_rate(model: Model, q: Float[ArrayLike, " nq"], v: Float[ArrayLike, " nv"]) -> Float[Array, " nq"]:
     """``dq/dt`` for joint rates ``v`` (MuJoCo layout): quaternions follow ``q̇ = ½ q ⊗ (0, ω)``."""
-    joints = model.joints
     qd = jnp.zeros_like(q)
-    types = np.asarray(joints.type, dtype=np.int64)
-    qadr = np.asarray(joints.qposadr, dtype=np.int64)
-    dadr = np.asarray(joints.dofadr, dtype=np.int64)
-    for kind in (HINGE, SLIDE, BALL, FREE):
-        js = np.nonzero(types == kind)[0]
-        if js.size == 0:
-            continue
-        qa, da = qadr[js], dadr[js]
-        if kind in (HINGE, SLIDE):
+    for kind, _, qa, da in model.joints.kind_groups():
+        if kind.quaternion is None:
             qd = qd.at[qa].set(v[da])
             continue
-        if kind == FREE:
-            qd = qd.at[qa[:, None] + np.arange(3)].set(v[da[:, None] + np.arange(3)])
-            qa, da = qa + 3, da + 3
-        quat = q[qa[:, None] + np.arange(4)]
-        w = v[da[:, None] + np.arange(3)]
+        n = kind.translation
+        if n:
+            qd = qd.at[qa[:, None] + np.arange(n)].set(v[da[:, None] + np.arange(n)])
+        iq = qa[:, None] + kind.quaternion + np.arange(4)
+        w = v[da[:, None] + n + np.arange(3)]
         w4 = jnp.concatenate([jnp.zeros_like(w[:, :1]), w], axis=-1)
-        qd = qd.at[qa[:, None] + np.arange(4)].set(0.5 * quat_multiply(quat, w4))
+        qd = qd.at[iq].set(0.5 * quat_multiply(q[iq], w4))
     return qd
 
 
 def _quat_exp(w, h):
     """Quaternion of the rotation by angle |w| h about w (gradient-safe at w = 0)."""
     n2 = jnp.sum(w * w, axis=-1, keepdims=True)
+    # double where: sqrt and sin(x)/x have infinite or NaN derivatives at w = 0
     safe = jnp.where(n2 > 0, n2, 1.0)
     n = jnp.sqrt(safe)
     half = 0.5 * n * h
@@ -388,38 +347,26 @@ def _quat_exp(w, h):
 
 def integrate_qpos(model: Model, q: Float[ArrayLike, " nq"], v: Float[ArrayLike, " nv"], dt) -> Float[Array, " nq"]:
     """Advance ``q`` by ``v`` for time ``dt`` exactly on the rotation group (MuJoCo ``mj_integratePos``)."""
-    joints = model.joints
     out = q
-    types = np.asarray(joints.type, dtype=np.int64)
-    qadr = np.asarray(joints.qposadr, dtype=np.int64)
-    dadr = np.asarray(joints.dofadr, dtype=np.int64)
-    for kind in (HINGE, SLIDE, BALL, FREE):
-        js = np.nonzero(types == kind)[0]
-        if js.size == 0:
-            continue
-        qa, da = qadr[js], dadr[js]
-        if kind in (HINGE, SLIDE):
+    for kind, _, qa, da in model.joints.kind_groups():
+        if kind.quaternion is None:
             out = out.at[qa].add(dt * v[da])
             continue
-        if kind == FREE:
-            out = out.at[qa[:, None] + np.arange(3)].add(dt * v[da[:, None] + np.arange(3)])
-            qa, da = qa + 3, da + 3
-        idx = qa[:, None] + np.arange(4)
-        quat = quat_multiply(q[idx], _quat_exp(v[da[:, None] + np.arange(3)], dt))
-        out = out.at[idx].set(quat / jnp.linalg.norm(quat, axis=-1, keepdims=True))
+        n = kind.translation
+        if n:
+            out = out.at[qa[:, None] + np.arange(n)].add(dt * v[da[:, None] + np.arange(n)])
+        iq = qa[:, None] + kind.quaternion + np.arange(4)
+        quat = quat_multiply(q[iq], _quat_exp(v[da[:, None] + n + np.arange(3)], dt))
+        out = out.at[iq].set(quat / jnp.linalg.norm(quat, axis=-1, keepdims=True))
     return out
 
 
 def normalize_qpos(model: Model, q: Float[ArrayLike, " nq"]) -> Float[Array, " nq"]:
     """Normalise the quaternions of ball and free joints."""
-    joints = model.joints
-    types = np.asarray(joints.type, dtype=np.int64)
-    qadr = np.asarray(joints.qposadr, dtype=np.int64)
-    for kind, off in ((BALL, 0), (FREE, 3)):
-        js = np.nonzero(types == kind)[0]
-        if js.size == 0:
+    for kind, _, qa, _ in model.joints.kind_groups():
+        if kind.quaternion is None:
             continue
-        idx = qadr[js][:, None] + off + np.arange(4)
-        quat = q[idx]
-        q = q.at[idx].set(quat / jnp.linalg.norm(quat, axis=-1, keepdims=True))
+        iq = qa[:, None] + kind.quaternion + np.arange(4)
+        quat = q[iq]
+        q = q.at[iq].set(quat / jnp.linalg.norm(quat, axis=-1, keepdims=True))
     return q

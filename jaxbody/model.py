@@ -15,6 +15,10 @@ Conventions follow MuJoCo so that an imported MJCF model compares one-to-one:
 Static structure (:class:`~jaxbody.tree.BodyTree`, :class:`~jaxbody.joints.JointLayout`)
 lives in static fields; every physical parameter is a traced array, so ``jax.grad`` reaches
 masses, centres of mass, inertias, offsets and axes.
+
+A :class:`Model` is itself a ``DynamicalSystem`` (``nq``, ``nv``, ``qdot``, ``acceleration``,
+``total_energy``): what :func:`jaxbody.simulate` integrates. Those methods check nothing
+(they run inside solver loops); validate once with :func:`jaxbody.check_inputs`.
 """
 
 from collections.abc import Sequence
@@ -24,10 +28,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._types import Array, ArrayLike, Float, ScalarLike, VectorLike
-from .joints import BALL, FREE, HINGE, JOINT_KIND_NAMES, JOINT_NQ, SLIDE, JointLayout, _JointSpec
+from .joints import FREE, HINGE, JOINT_KIND_NAMES, JOINT_KINDS, SLIDE, JointLayout, _JointSpec
 from .tree import BodyTree
+from .validation import validate_parameters
 
-__all__ = ["Model", "ModelBuilder", "validate_parameters", "quat_to_matrix_np"]
+__all__ = ["Model", "ModelBuilder", "validate_parameters"]
 
 
 class Model(eqx.Module):
@@ -97,6 +102,35 @@ class Model(eqx.Module):
             raise KeyError(f"no keyframe named {name!r}; keyframes: {list(self.keyframe_names)}") from None
         return self.keyframe_qpos[i], self.keyframe_qvel[i]
 
+    # ---------------------------------------------------------------- DynamicalSystem protocol
+    # The dynamics live in modules that import this one, hence the imports inside the methods.
+    def qdot(self, q: Float[Array, " nq"], v: Float[Array, " nv"]) -> Float[Array, " nq"]:
+        """Coordinate rates (quaternion kinematics for ball and free joints; no checks)."""
+        from .kinematics import qpos_rate
+
+        return qpos_rate(self, q, v)
+
+    def acceleration(
+        self, t: ScalarLike, q: Float[Array, " nq"], v: Float[Array, " nv"], tau: Float[Array, " nv"] | None = None
+    ) -> Float[Array, " nv"]:
+        """Forward dynamics with the joint springs and dampers acting (``include_passive=True``).
+
+        ``M v̇ + bias = tau + passive``; no value checks (safe inside a vmapped solver loop).
+        """
+        from .data import compute_data
+        from .kernels import forward_dynamics
+
+        del t  # autonomous: time enters only through tau
+        return forward_dynamics(self, compute_data(self, q, v), tau, include_passive=True)
+
+    def total_energy(self, q: Float[Array, " nq"], v: Float[Array, " nv"]) -> Float[Array, ""]:
+        """Kinetic plus gravity and joint-spring potential energy (no checks)."""
+        from .data import compute_data
+        from .kernels import kinetic_energy, potential_energy
+
+        data = compute_data(self, q, v)
+        return kinetic_energy(self, data) + potential_energy(self, data)
+
     def __repr__(self):
         return (
             f"Model({self.name!r}: n_body={self.n_body}, n_joint={self.n_joint}, "
@@ -104,106 +138,11 @@ class Model(eqx.Module):
         )
 
 
-def quat_to_matrix_np(q) -> np.ndarray:
-    q = np.asarray(q, dtype=np.float64)
-    q = q / np.linalg.norm(q)
-    w, x, y, z = q
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
 def _check_finite(value, what):
     a = np.asarray(value, dtype=np.float64)
     if not np.all(np.isfinite(a)):
         raise ValueError(f"{what} is not finite (NaN or inf): {a.tolist()}")
     return a
-
-
-def validate_parameters(model: Model, rtol: float = 1e-9) -> None:
-    """Check physical parameters on concrete values; raise ``ValueError`` naming the culprit.
-
-    Checks: finite values everywhere; non-negative masses; a positive subtree mass for every
-    body that moves (carries a joint); symmetric inertia tensors with non-negative principal
-    moments satisfying the triangle inequality; non-zero joint axes; non-negative armature,
-    damping and stiffness; unit-normalisable quaternions.
-    """
-    tree, joints = model.tree, model.joints
-    bn, jn = tree.names, joints.names
-    fields = [
-        "body_pos", "body_quat", "body_mass", "body_com", "body_inertia", "joint_pos",
-        "joint_axis", "joint_stiffness", "dof_armature", "dof_damping", "qpos0",
-        "qpos_spring", "gravity",
-    ]
-    expected = {
-        "body_pos": (tree.n_body, 3), "body_quat": (tree.n_body, 4), "body_mass": (tree.n_body,),
-        "body_com": (tree.n_body, 3), "body_inertia": (tree.n_body, 3, 3),
-        "joint_pos": (joints.n_joint, 3), "joint_axis": (joints.n_joint, 3),
-        "joint_stiffness": (joints.n_joint,), "dof_armature": (joints.nv,),
-        "dof_damping": (joints.nv,), "qpos0": (joints.nq,), "qpos_spring": (joints.nq,),
-        "gravity": (3,),
-    }
-    for f in fields:
-        a = np.asarray(getattr(model, f))
-        if a.shape != expected[f]:
-            raise ValueError(f"model field {f} has shape {a.shape}, expected {expected[f]}")
-        bad = ~np.isfinite(a)
-        if bad.any():
-            idx = int(np.argwhere(bad)[0][0]) if a.ndim else 0
-            owner = ""
-            if f.startswith("body_"):
-                owner = f" (body {idx}, {bn[idx]!r})"
-            elif f.startswith("joint_"):
-                owner = f" (joint {idx}, {jn[idx]!r})"
-            elif f.startswith("dof_"):
-                j = joints.dof_joint[idx]
-                owner = f" (dof {idx} of joint {j}, {jn[j]!r})"
-            raise ValueError(f"model field {f}{owner} is not finite (NaN or inf)")
-    mass = np.asarray(model.body_mass)
-    for k in range(tree.n_body):
-        if mass[k] < 0:
-            raise ValueError(f"body {k} ({bn[k]!r}): body_mass is negative ({mass[k]})")
-    sub = tree.subtree_mask.astype(np.float64) @ mass
-    for k in range(tree.n_body):
-        if joints.body_joint_count[k] > 0 and not sub[k] > 0:
-            raise ValueError(
-                f"body {k} ({bn[k]!r}) moves (has joints) but its subtree mass is "
-                f"{sub[k]}: a moving body needs positive mass"
-            )
-    inertia = np.asarray(model.body_inertia)
-    for k in range(tree.n_body):
-        I = inertia[k]
-        scale = max(np.abs(I).max(), 1e-300)
-        if np.abs(I - I.T).max() > rtol * scale + 1e-15:
-            raise ValueError(f"body {k} ({bn[k]!r}): body_inertia is not symmetric: {I.tolist()}")
-        lam = np.linalg.eigvalsh(0.5 * (I + I.T))
-        if lam[0] < -rtol * scale:
-            raise ValueError(
-                f"body {k} ({bn[k]!r}): body_inertia has a negative principal moment "
-                f"({lam.tolist()})"
-            )
-        if lam[0] + lam[1] < lam[2] * (1 - rtol) - 1e-15:
-            raise ValueError(
-                f"body {k} ({bn[k]!r}): body_inertia violates the triangle inequality "
-                f"(principal moments {lam.tolist()}: the two smaller must sum to at least the largest)"
-            )
-    axes = np.asarray(model.joint_axis)
-    for j in range(joints.n_joint):
-        if joints.type[j] in (HINGE, SLIDE) and np.linalg.norm(axes[j]) < 1e-12:
-            raise ValueError(f"joint {j} ({jn[j]!r}): joint_axis is zero")
-    for f, owner in (("dof_armature", "dof"), ("dof_damping", "dof"), ("joint_stiffness", "joint")):
-        a = np.asarray(getattr(model, f))
-        for i in np.nonzero(a < 0)[0]:
-            j = joints.dof_joint[i] if owner == "dof" else i
-            raise ValueError(f"joint {j} ({jn[j]!r}): {f} is negative ({a[i]})")
-    quats = np.asarray(model.body_quat)
-    for k in range(tree.n_body):
-        if np.linalg.norm(quats[k]) < 1e-12:
-            raise ValueError(f"body {k} ({bn[k]!r}): body_quat is zero")
 
 
 class ModelBuilder:
@@ -276,12 +215,18 @@ class ModelBuilder:
         )
         return len(self._bodies) - 1
 
-    def build(self, dtype=None) -> Model:
-        """Validate and return the :class:`Model` (raises ``ValueError`` naming the culprit)."""
+    def build(self, dtype=None, *, traversal: str | None = None) -> Model:
+        """Validate and return the :class:`Model` (raises ``ValueError`` naming the culprit).
+
+        Args:
+            dtype: floating dtype of the parameters (default: JAX's default float).
+            traversal: how subtree and path sums run, ``"dense"`` or ``"segment"``
+                (:class:`~jaxbody.BodyTree`; ``None``: chosen from the number of bodies).
+        """
         bodies = self._bodies
         if not bodies:
             raise ValueError("model has no bodies")
-        tree = BodyTree([b["parent"] for b in bodies], [b["name"] for b in bodies])
+        tree = BodyTree([b["parent"] for b in bodies], [b["name"] for b in bodies], traversal)
         jt, jb_, jnames, jpos, jaxis, jstiff = [], [], [], [], [], []
         arm, damp, q0, qs = [], [], [], []
         for k, b in enumerate(bodies):
@@ -296,13 +241,13 @@ class ModelBuilder:
                     raise ValueError(f"joint {jnames[-1]!r} of body {b['name']!r}: axis is zero")
                 jaxis.append(ax / nrm if nrm > 0 else ax)
                 jstiff.append(float(j.stiffness))
-                nv = {FREE: 6, BALL: 3, SLIDE: 1, HINGE: 1}[j.kind]
-                arm += [float(j.armature)] * nv
-                damp += [float(j.damping)] * nv
-                if j.kind in (HINGE, SLIDE):
+                kind = JOINT_KINDS[j.kind]
+                arm += [float(j.armature)] * kind.nv
+                damp += [float(j.damping)] * kind.nv
+                if kind.quaternion is None:
                     q0.append(float(j.ref))
                     qs.append(float(j.springref))
-                elif j.kind == BALL:
+                elif kind.code != FREE:
                     q0 += [1.0, 0.0, 0.0, 0.0]
                     qs += [1.0, 0.0, 0.0, 0.0]
                 else:

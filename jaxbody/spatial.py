@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._types import Array, ArrayLike, Float
+from ._util import skew
 from .tree import BodyTree
 
 __all__ = [
@@ -31,13 +32,6 @@ __all__ = [
     "absolute_bias",
     "skew",
 ]
-
-
-def skew(a: Float[ArrayLike, "*b 3"]) -> Float[Array, "*b 3 3"]:
-    """``[a]×`` with ``[a]× b = a × b``."""
-    x, y, z = a[..., 0], a[..., 1], a[..., 2]
-    zero = jnp.zeros_like(x)
-    return jnp.stack([zero, -z, y, z, zero, -x, -y, x, zero], axis=-1).reshape(a.shape[:-1] + (3, 3))
 
 
 def _cross(a, b):

@@ -7,10 +7,20 @@ base). Bodies are numbered topologically, ``parent[k] < k``.
 Everything here is computed once in NumPy at build time and stored as tuples of Python
 ints, so a :class:`BodyTree` is hashable and can live in an ``eqx.field(static=True)``.
 Traced code uses the small helpers at the bottom (:meth:`BodyTree.subtree_sum`,
-:meth:`BodyTree.path_sum`, :meth:`BodyTree.accumulate_from_root` ...): products with
-dense static 0/1 matrices (``jax.ops.segment_sum`` over precomputed index pairs for very
-large trees), gathers, or a ``fori_loop`` over a static number of pointer-jumping steps, so
-the size of the trace does not depend on the number of bodies.
+:meth:`BodyTree.path_sum`, :meth:`BodyTree.accumulate_from_root` ...). How they sum is the
+tree's ``traversal``, chosen once when the tree is built and stored with it:
+
+* ``"dense"`` (default up to :data:`DENSE_LIMIT` bodies): products with 0/1 matrices that are
+  built *inside* the program from two length-``n`` index vectors (the preorder number of each
+  body and the end of its subtree's preorder interval: ``i`` is an ancestor-or-self of ``k`` iff
+  ``pre[i] <= pre[k] < end[i]``). One matrix product is fast in a batch, and no ``n × n``
+  constant is baked into the compiled program, whose size therefore grows only linearly;
+* ``"segment"`` (default above the limit): ``jax.ops.segment_sum`` over precomputed index
+  pairs, whose memory grows with the pairs rather than with ``n²``.
+
+Either way the number of traced operations does not depend on the number of bodies; the
+recursions (:meth:`BodyTree.accumulate_from_root`) are a ``fori_loop`` over a static number of
+pointer-jumping steps.
 
 Vocabulary of the spec and the names used here:
 
@@ -32,30 +42,35 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["BodyTree"]
+from ._util import index, int_tuple
 
+__all__ = ["BodyTree", "DENSE_LIMIT", "TRAVERSALS"]
 
-def _as_int_tuple(a) -> tuple[int, ...]:
-    return tuple(int(v) for v in np.asarray(a, dtype=np.int64).reshape(-1).tolist())
+#: default traversal: trees up to this many bodies use ``"dense"``, larger ones ``"segment"``
+DENSE_LIMIT = 256
+TRAVERSALS = ("dense", "segment")
 
 
 class BodyTree:
-    """Static topology of a tree of bodies.
+    """Static topology of a tree of bodies (immutable; every index array built at construction).
 
     Args:
         parent: length-``n`` sequence of parent indices (``-1`` = ground / base).
         names: optional body names used in error messages (default ``body0``, ``body1``...).
+        traversal: ``"dense"`` or ``"segment"`` (see the module docstring); ``None`` chooses
+            ``"dense"`` up to :data:`DENSE_LIMIT` bodies.
 
     Raises:
-        ValueError: lengths differ, a parent index is unknown, the parents form a cycle, or
-            the numbering is not topological (``parent[k] >= k``). The message names the body.
+        ValueError: lengths differ, a parent index is unknown, the parents form a cycle, the
+            numbering is not topological (``parent[k] >= k``), or an unknown traversal. The
+            message names the body.
 
-    The instance is immutable; equality and hash depend only on ``parent`` and ``names``.
+    Equality and hash depend on ``parent``, ``names`` and ``traversal``.
     """
 
-    __slots__ = ("parent", "names", "__dict__")
-
-    def __init__(self, parent: Sequence, names: Sequence[str] | None = None):
+    def __init__(
+        self, parent: Sequence, names: Sequence[str] | None = None, traversal: str | None = None
+    ):
         parent_list = list(parent)
         n = len(parent_list)
         if names is None:
@@ -65,6 +80,10 @@ class BodyTree:
             raise ValueError(
                 f"body tree: parent array has {n} entries but {len(names)} body names were given"
             )
+        if traversal is None:
+            traversal = "dense" if n <= DENSE_LIMIT else "segment"
+        if traversal not in TRAVERSALS:
+            raise ValueError(f"body tree: unknown traversal {traversal!r}; choose from {TRAVERSALS}")
         for k, p in enumerate(parent_list):
             if isinstance(p, (bool, np.bool_)) or not isinstance(p, (int, np.integer)):
                 raise ValueError(
@@ -93,11 +112,17 @@ class BodyTree:
                     f"body tree: body {k} ({names[k]!r}) has parent {int(p)} ({names[p]!r}); "
                     "bodies must be numbered so that parent[k] < k (renumber topologically)"
                 )
-        object.__setattr__(self, "parent", _as_int_tuple(parent_list))
-        object.__setattr__(self, "names", tuple(names))
-        self._build()
+        fields = dict(parent=int_tuple(parent_list), names=tuple(names), traversal=traversal)
+        fields.update(_index_arrays(fields["parent"]))
+        # jit hashes static fields on every call that takes a model: hash once here
+        fields["_hash"] = hash((fields["parent"], fields["names"], traversal))
+        for k, v in fields.items():
+            object.__setattr__(self, k, v)
 
-    def __setattr__(self, name, value):  # pragma: no cover - immutability guard
+    def __setattr__(self, name, value):
+        raise AttributeError("BodyTree is immutable")
+
+    def __delattr__(self, name):
         raise AttributeError("BodyTree is immutable")
 
     def __eq__(self, other):
@@ -105,74 +130,21 @@ class BodyTree:
             return True
         return (
             isinstance(other, BodyTree)
-            and hash(self) == hash(other)
+            and self._hash == other._hash
             and self.parent == other.parent
             and self.names == other.names
+            and self.traversal == other.traversal
         )
 
     def __hash__(self):
-        # cached: jit hashes static fields on every call that takes a model as an argument
-        h = self.__dict__.get("_hash")
-        if h is None:
-            h = self.__dict__["_hash"] = hash((self.parent, self.names))
-        return h
+        return self._hash
 
     def __repr__(self):
-        return f"BodyTree(n_body={self.n_body}, parent={list(self.parent)})"
+        return f"BodyTree(n_body={self.n_body}, parent={list(self.parent)}, traversal={self.traversal!r})"
 
-    # ------------------------------------------------------------------ build time
-    def _build(self):
-        n = len(self.parent)
-        par = np.asarray(self.parent, dtype=np.int64)
-        depth = np.zeros(n, dtype=np.int64)
-        for k in range(n):
-            depth[k] = 0 if par[k] < 0 else depth[par[k]] + 1
-        root = np.arange(n)
-        for k in range(n):
-            if par[k] >= 0:
-                root[k] = root[par[k]]
-        # carrier pairs: (i, k, c(i,k)) for every strict ancestor i of k, sorted by k then depth
-        anc, desc, child = [], [], []
-        for k in range(n):
-            c = k
-            i = par[k]
-            path = []
-            while i >= 0:
-                path.append((i, c))
-                c = i
-                i = par[i]
-            for i, c in reversed(path):
-                anc.append(i)
-                desc.append(k)
-                child.append(c)
-        # subtree pairs (k, i) with i in S(k), self included; sorted by k (segment ids)
-        sub_root = list(range(n)) + anc
-        sub_body = list(range(n)) + desc
-        order = np.lexsort((np.asarray(sub_body), np.asarray(sub_root))) if n else np.zeros(0, int)
-        sub_root = np.asarray(sub_root, dtype=np.int64)[order]
-        sub_body = np.asarray(sub_body, dtype=np.int64)[order]
-        # pointer-jumping table: jump[s, k] = 2**s-th ancestor of k or -1
-        max_depth = int(depth.max()) if n else 0
-        steps = max(1, int(np.ceil(np.log2(max_depth + 1)))) if max_depth > 0 else 0
-        jump = np.full((max(steps, 1), n), -1, dtype=np.int64)
-        if n:
-            jump[0] = par
-            for s in range(1, steps):
-                prev = jump[s - 1]
-                jump[s] = np.where(prev >= 0, prev[np.maximum(prev, 0)], -1)
-        d = self.__dict__
-        d["depth"] = _as_int_tuple(depth)
-        d["root"] = _as_int_tuple(root)
-        d["carrier_pair_ancestor"] = _as_int_tuple(anc)
-        d["carrier_pair_body"] = _as_int_tuple(desc)
-        d["carrier_pair_child"] = _as_int_tuple(child)
-        d["subtree_pair_root"] = _as_int_tuple(sub_root)
-        d["subtree_pair_body"] = _as_int_tuple(sub_body)
-        d["jump_steps"] = steps
-        d["jump_table"] = tuple(_as_int_tuple(row) for row in jump)
-        d["children"] = tuple(
-            tuple(int(j) for j in np.nonzero(par == k)[0].tolist()) for k in range(n)
-        )
+    def with_traversal(self, traversal: str) -> "BodyTree":
+        """The same tree with another traversal (a new object; trees are immutable)."""
+        return BodyTree(self.parent, self.names, traversal)
 
     # ------------------------------------------------------------------ static views
     @property
@@ -189,71 +161,63 @@ class BodyTree:
 
     @cached_property
     def carrier_mask(self) -> np.ndarray:
-        """``mask[i, k]`` is True iff ``i`` is a carrier (strict ancestor) of ``k``."""
+        """``mask[i, k]`` is True iff ``i`` is a carrier (strict ancestor) of ``k`` (NumPy, build time)."""
         m = np.zeros((self.n_body, self.n_body), dtype=bool)
         m[np.asarray(self.carrier_pair_ancestor, int), np.asarray(self.carrier_pair_body, int)] = True
         return m
 
     @cached_property
     def subtree_mask(self) -> np.ndarray:
-        """``mask[k, i]`` is True iff ``i`` belongs to subsystem ``k`` (self included)."""
+        """``mask[k, i]`` is True iff ``i`` belongs to subsystem ``k`` (self included; NumPy)."""
         return self.carrier_mask | np.eye(self.n_body, dtype=bool)
 
     @cached_property
     def path_matrix(self) -> np.ndarray:
-        """``T[k, i] = 1`` iff ``i`` is ``k`` or a carrier of ``k`` (spec §9.4: alpha = T q)."""
+        """``T[k, i] = 1`` iff ``i`` is ``k`` or a carrier of ``k`` (spec §9.4: alpha = T q; NumPy)."""
         return self.subtree_mask.T.astype(np.float64)
 
-    def leaves(self) -> tuple[int, ...]:
-        return tuple(k for k in range(self.n_body) if not self.children[k])
-
     # ------------------------------------------------------------------ traced helpers
+    def ancestor_or_self(self, anc, body):
+        """Traced boolean array: ``anc`` is ``body`` or one of its carriers (broadcasting).
+
+        ``anc`` and ``body`` are static or traced body indices; the test is the preorder
+        interval ``pre[anc] <= pre[body] < end[anc]`` (two length-``n`` constants).
+        """
+        pre = jnp.asarray(index(self.preorder))
+        end = jnp.asarray(index(self.preorder_end))
+        p_body = pre[body]
+        return (pre[anc] <= p_body) & (p_body < end[anc])
+
+    def _path_mask(self, dtype):
+        """``P[k, i] = 1`` iff ``i`` is ``k`` or a carrier of ``k``, built in the program."""
+        ids = jnp.arange(self.n_body, dtype=jnp.int32)
+        return self.ancestor_or_self(ids[None, :], ids[:, None]).astype(dtype)
+
+    def _children_mask(self, dtype):
+        ids = jnp.arange(self.n_body, dtype=jnp.int32)
+        return (ids[:, None] == jnp.asarray(index(self.parent))[None, :]).astype(dtype)
+
     def _pairs(self, name):
-        return jnp.asarray(np.asarray(getattr(self, name), dtype=np.int32))
-
-    #: trees up to this many bodies use dense static 0/1 matrices for subtree, path and
-    #: children sums (one matrix product, fast in batch); larger ones use segment sums.
-    DENSE_LIMIT = 256
-
-    def _dense(self, name) -> np.ndarray:
-        cache = self.__dict__.setdefault("_dense_cache", {})
-        if name not in cache:
-            n = self.n_body
-            if name == "subtree":
-                m = self.subtree_mask
-            elif name == "path":
-                m = self.subtree_mask.T
-            else:
-                m = np.zeros((n, n), dtype=bool)
-                for k, p in enumerate(self.parent):
-                    if p >= 0:
-                        m[p, k] = True
-            cache[name] = m.astype(np.float64)
-        return cache[name]
-
-    def _matmul(self, name, x):
-        m = jnp.asarray(self._dense(name), x.dtype)
-        return jnp.tensordot(m, x, axes=1)
+        return jnp.asarray(index(getattr(self, name)))
 
     def children_sum(self, x):
         """``out[k] = sum_{j in A(k)} x[j]`` (sum over adjacent bodies). ``x``: (n, ...)."""
         x = jnp.asarray(x)
-        n = self.n_body
-        if n <= self.DENSE_LIMIT:
-            return self._matmul("children", x)
-        par = np.asarray(self.parent, dtype=np.int32)
+        if self.traversal == "dense":
+            return jnp.tensordot(self._children_mask(x.dtype), x, axes=1)
+        par = index(self.parent)
         nonroot = np.nonzero(par >= 0)[0].astype(np.int32)
         if nonroot.size == 0:
             return jnp.zeros_like(x)
         return jax.ops.segment_sum(
-            x[jnp.asarray(nonroot)], jnp.asarray(par[nonroot]), num_segments=n
+            x[jnp.asarray(nonroot)], jnp.asarray(par[nonroot]), num_segments=self.n_body
         )
 
     def subtree_sum(self, x):
         """``out[k] = sum_{i in S(k)} x[i]`` (sum over subsystem ``k``, ``k`` included)."""
         x = jnp.asarray(x)
-        if self.n_body <= self.DENSE_LIMIT:
-            return self._matmul("subtree", x)
+        if self.traversal == "dense":
+            return jnp.tensordot(self._path_mask(x.dtype).T, x, axes=1)
         return jax.ops.segment_sum(
             x[self._pairs("subtree_pair_body")],
             self._pairs("subtree_pair_root"),
@@ -264,8 +228,8 @@ class BodyTree:
     def path_sum(self, x):
         """``out[k] = sum_{i in C(k) or i = k} x[i]`` (sum from the root down to ``k``)."""
         x = jnp.asarray(x)
-        if self.n_body <= self.DENSE_LIMIT:
-            return self._matmul("path", x)
+        if self.traversal == "dense":
+            return jnp.tensordot(self._path_mask(x.dtype), x, axes=1)
         return jax.ops.segment_sum(
             x[self._pairs("subtree_pair_root")],
             self._pairs("subtree_pair_body"),
@@ -277,21 +241,83 @@ class BodyTree:
 
         ``combine(outer, inner)`` must be associative; ``local`` is a pytree of arrays with a
         leading body axis. Uses pointer jumping: ``ceil(log2(depth+1))`` steps inside a
-        ``fori_loop``, so the trace does not grow with the number of bodies.
+        ``fori_loop``, so the trace does not grow with the number of bodies. The jump table
+        is built in the program from the parent array (no ``steps × n`` constant).
         """
         if self.jump_steps == 0:
             return local
-        table = jnp.asarray(np.asarray(self.jump_table, dtype=np.int32))
 
-        def step(s, acc):
-            idx = table[s]
-            valid = idx >= 0
-            outer = jax.tree.map(lambda a: a[jnp.maximum(idx, 0)], acc)
+        def step(s, carry):
+            acc, jump = carry
+            valid = jump >= 0
+            safe = jnp.maximum(jump, 0)
+            outer = jax.tree.map(lambda a: a[safe], acc)
             new = combine(outer, acc)
-            return jax.tree.map(
+            acc = jax.tree.map(
                 lambda nw, old: jnp.where(valid.reshape((-1,) + (1,) * (old.ndim - 1)), nw, old),
                 new,
                 acc,
             )
+            # 2^(s+1)-th ancestor = the 2^s-th ancestor of the 2^s-th ancestor
+            jump = jnp.where(valid, jump[safe], -1)
+            return acc, jump
 
-        return jax.lax.fori_loop(0, self.jump_steps, step, local)
+        parent = jnp.asarray(index(self.parent))
+        return jax.lax.fori_loop(0, self.jump_steps, step, (local, parent))[0]
+
+
+def _index_arrays(parent: tuple[int, ...]) -> dict:
+    """Every static index array of a tree (computed once, NumPy, at construction)."""
+    n = len(parent)
+    par = np.asarray(parent, dtype=np.int64)
+    depth = np.zeros(n, dtype=np.int64)
+    root = np.arange(n)
+    for k in range(n):
+        if par[k] >= 0:
+            depth[k] = depth[par[k]] + 1
+            root[k] = root[par[k]]
+    children = tuple(tuple(int(j) for j in np.nonzero(par == k)[0].tolist()) for k in range(n))
+    # preorder numbering: a subtree is the contiguous interval [pre[k], end[k])
+    pre = np.zeros(n, dtype=np.int64)
+    end = np.zeros(n, dtype=np.int64)
+    counter = 0
+    stack = [(r, False) for r in reversed(range(n)) if par[r] < 0]
+    while stack:
+        k, done = stack.pop()
+        if done:
+            end[k] = counter
+            continue
+        pre[k] = counter
+        counter += 1
+        stack.append((k, True))
+        stack.extend((c, False) for c in reversed(children[k]))
+    # carrier pairs: (i, k, c(i,k)) for every strict ancestor i of k, sorted by k then depth
+    anc, desc, child = [], [], []
+    for k in range(n):
+        c, i, path = k, par[k], []
+        while i >= 0:
+            path.append((i, c))
+            c, i = i, par[i]
+        for i, c in reversed(path):
+            anc.append(i)
+            desc.append(k)
+            child.append(c)
+    # subtree pairs (k, i) with i in S(k), self included; sorted by k (segment ids)
+    sub_root = list(range(n)) + anc
+    sub_body = list(range(n)) + desc
+    order = np.lexsort((np.asarray(sub_body), np.asarray(sub_root))) if n else np.zeros(0, int)
+    max_depth = int(depth.max()) if n else 0
+    return dict(
+        depth=int_tuple(depth),
+        root=int_tuple(root),
+        children=children,
+        preorder=int_tuple(pre),
+        preorder_end=int_tuple(end),
+        carrier_pair_ancestor=int_tuple(anc),
+        carrier_pair_body=int_tuple(desc),
+        carrier_pair_child=int_tuple(child),
+        subtree_pair_root=int_tuple(np.asarray(sub_root, dtype=np.int64)[order]),
+        subtree_pair_body=int_tuple(np.asarray(sub_body, dtype=np.int64)[order]),
+        # pointer-jumping steps: ceil(log2(max_depth + 1))
+        jump_steps=max(1, int(np.ceil(np.log2(max_depth + 1)))) if max_depth > 0 else 0,
+    )

@@ -27,6 +27,7 @@ def random_model(
     mass_ratio: float = 100.0,
     passive: bool = True,
     dtype=None,
+    traversal=None,
 ):
     """Random tree mixing joint kinds, several joints per body, offsets and rotated frames."""
     rng = np.random.default_rng(seed)
@@ -67,7 +68,7 @@ def random_model(
             inertia=random_inertia(rng, mass),
             joints=joints,
         )
-    return b.build(dtype=dtype)
+    return b.build(dtype=dtype, traversal=traversal)
 
 
 def hinge_chain(n: int, dtype=None):

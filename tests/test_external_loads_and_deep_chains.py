@@ -44,12 +44,12 @@ def test_external_loads_match_xfrc_applied(seed):
     d.qpos[:], d.qvel[:], d.qfrc_applied[:] = q, v, tau
     d.xfrc_applied[1:] = xfrc
     mujoco.mj_forward(m, d)
-    fwd = jax.jit(jb.forward_dynamics)
+    fwd = jax.jit(lambda m, q, v, t, e: jb.forward_dynamics(m, q, v, t, external=e))
     assert rel(fwd(model, q, v, tau, jnp.asarray(xfrc)), d.qacc) < 1e-9
     a = d.qacc.copy()
     d.qacc[:] = a
     mujoco.mj_inverse(m, d)  # qfrc_inverse = M a + bias = qfrc_applied + Jᵀ xfrc (passive off)
-    inv = jax.jit(jb.inverse_dynamics)
+    inv = jax.jit(lambda m, q, v, a, e=None: jb.inverse_dynamics(m, q, v, a, external=e))
     assert rel(inv(model, q, v, jnp.asarray(a)), d.qfrc_inverse) < 1e-10
     assert rel(inv(model, q, v, jnp.asarray(a), jnp.asarray(xfrc)), tau) < 1e-9
 

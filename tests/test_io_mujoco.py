@@ -391,7 +391,7 @@ def test_nan_position_named(tmp_path, monkeypatch):
     # MuJoCo compiles a NaN body position (with a printed warning); our validation names it.
     monkeypatch.chdir(tmp_path)  # MuJoCo appends its warning to ./MUJOCO_LOG.TXT
     xml = _inline('<body name="b" pos="nan 0 0"><joint name="h"/><inertial pos="0 0 0" mass="1" diaginertia="1 1 1"/></body>')
-    with pytest.raises(ValueError, match=r"model field body_pos \(body 0, 'b'\) is not finite"):
+    with pytest.raises(ValueError, match=r"body 0 \('b'\): body_pos is not finite"):
         jb.from_mjcf(xml)
 
 

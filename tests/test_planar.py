@@ -51,7 +51,7 @@ def random_system(topology, seed, dtype=np.float64):
     parent, base, origin = TOPOLOGIES[topology]
     rng = np.random.default_rng(seed)
     n = len(parent)
-    return planar.tree(
+    return planar.from_parents(
         parent,
         rng.uniform(0.3, 2.0, n).astype(dtype),
         rng.normal(0.0, 0.3, (n, 2)).astype(dtype),
@@ -174,7 +174,7 @@ def _point_load_refs(s, q, body_onehot, point, force):
     arm = _rotmat(planar.absolute_angles(s, q)[body]) @ point
     F = body_onehot[:, None] * force
     Mr = body_onehot * (arm[0] * force[1] - arm[1] * force[0])
-    return Q_ref, planar.generalized_forces(s, q, None, F, Mr), pos(q)
+    return Q_ref, planar.generalized_forces(s, q, None, external_force=F, external_moment=Mr), pos(q)
 
 
 @jax.jit
@@ -182,7 +182,7 @@ def bundle(s, st_):
     q, v, tau, F, Mr = st_["q"], st_["v"], st_["tau"], st_["force"], st_["moment"]
     M = planar.mass_matrix(s, q)
     h = planar.bias_forces(s, q, v)
-    acc = planar.forward_dynamics(s, q, v, tau, F, Mr)
+    acc = planar.forward_dynamics(s, q, v, tau, external_force=F, external_moment=Mr)
     M_ref, h_ref = ref_dynamics(s, q, v)
     Q_ref, Q_load, point_ref = _point_load_refs(s, q, st_["onehot"], st_["point"], st_["point_force"])
     out = dict(
@@ -198,14 +198,14 @@ def bundle(s, st_):
         acc=acc,
         acc_protocol=s.acceleration(0.0, q, v, tau),
         acc_drives=planar.forward_dynamics(s, q, v, tau),
-        tau_back=planar.inverse_dynamics(s, q, v, acc, F, Mr),
+        tau_back=planar.inverse_dynamics(s, q, v, acc, external_force=F, external_moment=Mr),
         dE=jax.jvp(lambda qq, vv: planar.total_energy(s, qq, vv), (q, v), (v, acc))[1],
-        P=planar.power(s, q, v, tau, F, Mr),
+        P=planar.power(s, q, v, tau, external_force=F, external_moment=Mr),
         P_protocol=s.power(0.0, q, v, tau),
         P_ref=ref_power(s, q, v, tau, F, Mr),
         P_ref_drives=ref_power(s, q, v, tau, 0.0 * F, 0.0 * Mr),
-        joint_forces=planar.joint_forces(s, q, v, acc, F),
-        root_force=planar.root_force(s, q, v, acc, F),
+        joint_reactions=planar.joint_reactions(s, q, v, acc, external_force=F)[0],
+        root_force=planar.root_force(s, q, v, acc, external_force=F),
         com_acc=ref_com_acceleration(s, q, v, acc),
         hinges=planar.body_positions(s, q),
         points=ref_points(s, q),
@@ -269,9 +269,9 @@ def test_random_tree_reactions_kinematics_and_joint_space(topo, sd):
     for k, sub in enumerate(subtree_sets(parent)):
         idx = sorted(sub)
         ref = (mass[idx, None] * a_c[idx]).sum(0) - mass[idx].sum() * g - F[idx].sum(0)
-        _close(out["joint_forces"][k], ref, atol=1e-8)
+        _close(out["joint_reactions"][k], ref, atol=1e-8)
     roots = [k for k, p in enumerate(parent) if p < 0]
-    _close(out["root_force"], np.asarray(out["joint_forces"])[roots].sum(0), atol=1e-12)
+    _close(out["root_force"], np.asarray(out["joint_reactions"])[roots].sum(0), atol=1e-12)
     # hinge and CM positions
     _close(out["hinges"][0], out["points"][0], atol=1e-12)
     _close(out["hinges"][1], out["points"][1], atol=1e-12)
@@ -303,7 +303,7 @@ def test_point_load_helpers():
     @jax.jit
     def helpers(s_, q, point, force):
         F, Mr = planar.point_load(s_, q, body, point, force)
-        return planar.generalized_forces(s_, q, None, F, Mr), planar.point_position(s_, q, body, point)
+        return planar.generalized_forces(s_, q, None, external_force=F, external_moment=Mr), planar.point_position(s_, q, body, point)
 
     Q, pos = helpers(s, st_["q"], st_["point"], st_["point_force"])
     _close(Q, out["Q_load_ref"], atol=1e-10)
@@ -367,7 +367,7 @@ def test_gradients_match_finite_differences():
 
     @jax.jit
     def f(p):
-        s = planar.tree(parent, p["mass"], p["com"], p["hinge_pos"], p["inertia"], gravity=p["gravity"],
+        s = planar.from_parents(parent, p["mass"], p["com"], p["hinge_pos"], p["inertia"], gravity=p["gravity"],
                         base_mass=p["base_mass"], angle_origin=origin)
         M = planar.mass_matrix(s, st_["q"])
         acc = planar.forward_dynamics(s, st_["q"], st_["v"], st_["tau"])
@@ -429,7 +429,7 @@ def _count_eqns(jaxpr):
 def _sized_tree(n, base, seed=0):
     rng = np.random.default_rng(seed)
     parent = [-1] + [int(rng.integers(max(0, k - 3), k)) for k in range(1, n)]
-    return planar.tree(
+    return planar.from_parents(
         parent, rng.uniform(0.5, 1.5, n), rng.normal(0, 0.2, (n, 2)), rng.normal(0, 0.5, (n, 2)),
         rng.uniform(0.01, 0.1, n), base_mass=1.0 if base else None,
     )
@@ -449,7 +449,7 @@ def test_trace_size_does_not_grow_with_bodies(kind):
         "inverse_dynamics": lambda s, q, v: planar.inverse_dynamics(s, q, v, v),
         "joint_mass_matrix": lambda s, q, v: planar.joint_mass_matrix(s, q),
         "kinetic_energy": lambda s, q, v: planar.kinetic_energy(s, q, v),
-        "joint_forces": lambda s, q, v: planar.joint_forces(s, q, v, v),
+        "joint_reactions": lambda s, q, v: planar.joint_reactions(s, q, v, v)[0],
     }
     counts = {}
     for n in (4, 64):
@@ -545,12 +545,12 @@ def _three_link(a2, a3, base_mass=None, a1=0.3):
     # link masses 1, 2, 1; L_2 = 0.5: (md)_3 = a_3, (md)_2 = 2 a_2 + 0.5, (md)_1 = a_1 + 3 L_1
     com = [[a1, 0.0], [a2, 0.0], [a3, 0.0]]
     hinge = [[0.0, 0.0], [0.6, 0.0], [0.5, 0.0]]
-    return planar.tree([-1, 0, 1], [1.0, 2.0, 1.0], com, hinge, [0.02, 0.03, 0.01], base_mass=base_mass)
+    return planar.from_parents([-1, 0, 1], [1.0, 2.0, 1.0], com, hinge, [0.02, 0.03, 0.01], base_mass=base_mass)
 
 
 def test_decoupling_balanced_chain_has_diagonal_mass_matrix():
     s = _three_link(a2=-0.25, a3=0.0)  # (md)_2 = (md)_3 = 0 exactly; (md)_1 ≠ 0
-    rep = planar.decoupling_report(s, n_samples=16, seed=1)
+    rep = jb.design.decoupling_report(s, n_samples=16, seed=1)
     _close(rep.static_moment_magnitude, [1.0 * 0.3 + 3.0 * 0.6, 0.0, 0.0], atol=1e-15)
     assert rep.must_vanish.tolist() == [False, True, True]
     assert rep.decoupled and rep.offending == ()
@@ -561,7 +561,7 @@ def test_decoupling_balanced_chain_has_diagonal_mass_matrix():
 
     @jax.jit
     def probe(s_, q_, v_, tau_):
-        return (planar.augmented_bodies(s_).augmented_inertia, planar.forward_dynamics(s_, q_, v_, tau_),
+        return (planar.augmented_bodies_in_body_axes(s_).augmented_inertia, planar.forward_dynamics(s_, q_, v_, tau_),
                 planar.joint_mass_matrix(s_, q_))
 
     J, acc, Mq = (np.asarray(x) for x in probe(s, q, v, tau))
@@ -574,23 +574,23 @@ def test_decoupling_balanced_chain_has_diagonal_mass_matrix():
 
 def test_decoupling_unbalanced_chain_is_coupled():
     s = _three_link(a2=0.2, a3=0.1)
-    rep = planar.decoupling_report(s, n_samples=8)
+    rep = jb.design.decoupling_report(s, n_samples=8)
     assert not rep.decoupled and rep.offending == (1, 2)
     assert rep.residual > 0.1
     # only body 3 unbalanced: still coupled, and only body 3 reported
-    rep = planar.decoupling_report(_three_link(a2=-0.25, a3=0.1), configurations=np.zeros((1, 3)))
+    rep = jb.design.decoupling_report(_three_link(a2=-0.25, a3=0.1), configurations=np.zeros((1, 3)))
     assert rep.offending == (2,) and rep.residual > 0.01
 
 
 def test_decoupling_on_a_translating_base_needs_every_body_balanced():
-    balanced = planar.tree([-1, 0], [1.0, 1.0], [[-0.5, 0.0], [0.0, 0.0]], [[0.0, 0.0], [0.5, 0.0]],
+    balanced = planar.from_parents([-1, 0], [1.0, 1.0], [[-0.5, 0.0], [0.0, 0.0]], [[0.0, 0.0], [0.5, 0.0]],
                            [0.1, 0.02], base_mass=2.0)
-    rep = planar.decoupling_report(balanced)
+    rep = jb.design.decoupling_report(balanced)
     assert rep.must_vanish.tolist() == [True, True] and rep.decoupled and rep.residual == 0.0
     # body 1 unbalanced on the base: (md)_1 ≠ 0 couples body 1 with the base
-    s = planar.tree([-1, 0], [1.0, 1.0], [[0.3, 0.0], [0.0, 0.0]], [[0.0, 0.0], [0.5, 0.0]],
+    s = planar.from_parents([-1, 0], [1.0, 1.0], [[0.3, 0.0], [0.0, 0.0]], [[0.0, 0.0], [0.5, 0.0]],
                     [0.1, 0.02], base_mass=2.0)
-    rep = planar.decoupling_report(s)
+    rep = jb.design.decoupling_report(s)
     assert rep.offending == (0,) and not rep.decoupled and rep.residual > 0.1
 
 
@@ -602,7 +602,7 @@ GOOD = dict(parent=[-1, 0, 0], mass=[1.0, 0.5, 0.5], com=[[0.1, 0.0]] * 3, hinge
 def _build(**kw):
     args = {**GOOD, **kw}
     names = kw.pop("names", ("arm", "left", "right"))
-    return planar.tree(args["parent"], args["mass"], args["com"], args["hinge_pos"], args["inertia"],
+    return planar.from_parents(args["parent"], args["mass"], args["com"], args["hinge_pos"], args["inertia"],
                        gravity=args.get("gravity", (0.0, -9.81)), base_mass=args.get("base_mass"), names=names)
 
 
@@ -635,7 +635,7 @@ def test_bad_parameters_raise(kw, match):
 
 def test_zero_augmented_inertia_raises():
     with pytest.raises(ValueError, match=r"planar body 0 \('bob'\): body_inertia gives a zero augmented moment"):
-        planar.tree([-1], [1.0], [[0.0, 0.0]], [[0.0, 0.0]], [0.0], names=("bob",))
+        planar.from_parents([-1], [1.0], [[0.0, 0.0]], [[0.0, 0.0]], [0.0], names=("bob",))
 
 
 def test_bad_chain_arguments_raise():
@@ -663,11 +663,11 @@ def test_bad_state_shapes_raise():
     with pytest.raises(ValueError, match=r"planar system: a has shape \(2,\), expected \(5,\)"):
         planar.inverse_dynamics(s, q, v, jnp.zeros(2))
     with pytest.raises(ValueError, match=r"external_force has shape \(2, 2\), expected \(3, 2\)"):
-        planar.generalized_forces(s, q, None, jnp.zeros((2, 2)))
+        planar.generalized_forces(s, q, None, external_force=jnp.zeros((2, 2)))
     with pytest.raises(ValueError, match=r"external_moment has shape \(2,\), expected \(3,\)"):
-        planar.generalized_forces(s, q, None, None, jnp.zeros(2))
+        planar.generalized_forces(s, q, None, external_moment=jnp.zeros(2))
     with pytest.raises(ValueError, match=r"decoupling_report: configurations has shape \(2, 3\)"):
-        planar.decoupling_report(s, configurations=np.zeros((2, 3)))
+        jb.design.decoupling_report(s, configurations=np.zeros((2, 3)))
 
 
 def test_validate_and_system_in_jit():

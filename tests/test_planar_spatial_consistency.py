@@ -30,7 +30,7 @@ def build_pair(parent, base, seed):
     inertia = rng.uniform(0.01, 0.1, n)
     base_mass = 1.7 if base else None
     g = np.array([0.0, -9.81])
-    planar = jb.planar.tree(parent, mass, com, hinge, inertia, gravity=g, base_mass=base_mass)
+    planar = jb.planar.from_parents(parent, mass, com, hinge, inertia, gravity=g, base_mass=base_mass)
 
     b = jb.ModelBuilder(gravity=(0.0, -9.81, 0.0))
     if base:
@@ -81,9 +81,88 @@ def test_planar_and_spatial_paths_agree(case):
     np.testing.assert_allclose(E_spatial, E_planar, rtol=1e-12)
 
     # joint forces of Statement 1 (eq. 1), planar vs spatial (world x, y components)
-    F_planar = jb.planar.joint_forces(planar, q_abs, v_abs, a_abs)
+    F_planar = jb.planar.joint_reactions(planar, q_abs, v_abs, a_abs)[0]
     F_spatial, M_spatial_k = jax.jit(jb.joint_reactions)(model, q_rel, v_rel, a_rel)
     bodies = np.arange(n) + (1 if spec["base"] else 0)
     np.testing.assert_allclose(F_spatial[bodies, :2], F_planar, rtol=1e-10, atol=1e-10)
     # the z-moment of the reaction about the hinge is the drive torque M_k
     np.testing.assert_allclose(M_spatial_k[bodies, 2], tau[nb:], rtol=1e-10, atol=1e-10)
+
+
+# ----------------------------------------------------------------------------- from_model
+def _tilted_model(parent, seed, damping=0.0):
+    """A spatial model whose hinges are parallel to a tilted axis n, gravity in their plane,
+    with full inertia tensors, out-of-plane offsets and non-zero joint references."""
+    from random_models import random_inertia, random_rotation_quat
+
+    rng = np.random.default_rng(seed)
+    R0 = np.asarray(jb.kinematics.quat_to_matrix(jnp.asarray(random_rotation_quat(rng))))
+    n_axis = R0 @ np.array([0.0, 0.0, 1.0])
+    b = jb.ModelBuilder(gravity=R0 @ np.array([0.3, -9.81, 0.0]))
+    for k, p in enumerate(parent):
+        b.add_body(
+            f"b{k}", None if p < 0 else f"b{p}",
+            pos=R0 @ np.array([*rng.uniform(-0.5, 0.5, 2), rng.uniform(-0.2, 0.2)]),
+            mass=float(rng.uniform(0.5, 2.0)),
+            com=R0 @ rng.uniform(-0.3, 0.3, 3),
+            inertia=random_inertia(rng, 0.2),
+            joints=[jb.Hinge(axis=n_axis, pos=R0 @ rng.uniform(-0.1, 0.1, 3),
+                             ref=float(rng.uniform(-1, 1)), damping=damping)],
+        )
+    return b.build()
+
+
+@pytest.mark.parametrize("parent", [[-1, 0, 1], [-1, 0, 0, 1], [-1, -1, 1]])
+def test_from_model_gives_the_same_dynamics(parent):
+    model = _tilted_model(parent, seed=len(parent) + parent[1])
+    system = jb.planar.from_model(model)
+    rng = np.random.default_rng(3)
+    q = model.qpos0 + jnp.asarray(rng.uniform(-2, 2, model.nq))
+    v = jnp.asarray(rng.standard_normal(model.nv))
+    tau = jnp.asarray(rng.standard_normal(model.nv))
+    theta = jb.planar.relative_to_absolute(system, q - model.qpos0)
+    omega = jb.planar.relative_to_absolute(system, v)
+    np.testing.assert_allclose(
+        jb.planar.joint_mass_matrix(system, theta), jb.mass_matrix(model, q), rtol=1e-12, atol=1e-13
+    )
+    np.testing.assert_allclose(
+        jb.planar.joint_bias_forces(system, theta, omega), jb.bias_forces(model, q, v), rtol=1e-11, atol=1e-12
+    )
+    a_abs = jb.planar.forward_dynamics(system, theta, omega, tau)
+    np.testing.assert_allclose(
+        jb.planar.absolute_to_relative(system, a_abs), jb.forward_dynamics(model, q, v, tau), rtol=1e-10, atol=1e-11
+    )
+    # the drive torques are the hinge torques, and the reaction moment about n is the drive
+    np.testing.assert_allclose(jb.planar.inverse_dynamics(system, theta, omega, a_abs), tau, rtol=1e-10, atol=1e-11)
+    _, moment = jb.joint_reactions(model, q, v, jb.forward_dynamics(model, q, v, tau))
+    n_axis = np.asarray(model.joint_axis[0])
+    np.testing.assert_allclose(np.asarray(moment) @ n_axis, tau, rtol=1e-10, atol=1e-11)
+    # kinetic energy and potential energy differences agree
+    np.testing.assert_allclose(
+        jb.planar.kinetic_energy(system, theta, omega), jb.kinetic_energy(model, q, v), rtol=1e-12
+    )
+    q2 = q + 0.3
+    theta2 = jb.planar.relative_to_absolute(system, q2 - model.qpos0)
+    np.testing.assert_allclose(
+        jb.planar.potential_energy(system, theta2) - jb.planar.potential_energy(system, theta),
+        jb.potential_energy(model, q2) - jb.potential_energy(model, q), rtol=1e-10, atol=1e-12,
+    )
+
+
+def test_from_model_rejects_what_is_not_planar():
+    with pytest.raises(ValueError, match=r"joint 0 \('b0_hinge0'\) has dof_damping 0.5; a planar system has no"):
+        jb.planar.from_model(_tilted_model([-1, 0], seed=1, damping=0.5))
+    b = jb.ModelBuilder(gravity=(0, 0, -9.81))
+    b.add_body("a", mass=1.0, inertia=(0.1, 0.1, 0.1), com=(0.1, 0, 0), joints=[jb.Hinge(axis=(0, 1, 0))])
+    b.add_body("s", "a", mass=1.0, inertia=(0.1, 0.1, 0.1), joints=[jb.Slide(axis=(1, 0, 0))])
+    with pytest.raises(ValueError, match=r"body 1 \('s'\) must carry exactly one hinge joint \(it has 1 joint\(s\), the first a slide\)"):
+        jb.planar.from_model(b.build())
+    b = jb.ModelBuilder(gravity=(0, 0, -9.81))
+    b.add_body("a", mass=1.0, inertia=(0.1, 0.1, 0.1), com=(0.1, 0, 0), joints=[jb.Hinge(axis=(0, 1, 0))])
+    b.add_body("c", "a", mass=1.0, inertia=(0.1, 0.1, 0.1), com=(0.1, 0, 0), joints=[jb.Hinge(axis=(1, 0, 0))])
+    with pytest.raises(ValueError, match=r"the axis of joint 1 \('c_hinge0'\) is \[1.0, 0.0, 0.0\] in world axes, not \[0.0, 1.0, 0.0\]"):
+        jb.planar.from_model(b.build())
+    b = jb.ModelBuilder(gravity=(0, 0, -9.81))
+    b.add_body("a", mass=1.0, inertia=(0.1, 0.1, 0.1), com=(0.1, 0, 0), joints=[jb.Hinge(axis=(0, 0, 1))])
+    with pytest.raises(ValueError, match=r"gravity \[0.0, 0.0, -9.81\] is not in the plane of motion"):
+        jb.planar.from_model(b.build())

@@ -119,7 +119,7 @@ def test_planar_equations_match_sympy_lagrange(name):
     inertia = rng.uniform(0.01, 0.2, n)
     gravity = np.array([rng.normal(0.0, 1.0), -9.81])
     base_mass = rng.uniform(0.5, 3.0) if base else 0.0
-    s = planar.tree(parent, mass, com, hinge, inertia, gravity=gravity,
+    s = planar.from_parents(parent, mass, com, hinge, inertia, gravity=gravity,
                     base_mass=base_mass if base else None, angle_origin=origin)
     params = [*mass, *com[:, 0], *com[:, 1], *hinge[:, 0], *hinge[:, 1], *inertia, *gravity, base_mass]
 

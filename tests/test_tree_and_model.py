@@ -141,7 +141,7 @@ def test_nan_parameters_in_a_model_are_reported_by_field():
     import equinox as eqx
 
     bad = eqx.tree_at(lambda m: m.body_mass, model, jnp.array([jnp.nan]))
-    with pytest.raises(ValueError, match=r"model field body_mass \(body 0, 'base'\) is not finite"):
+    with pytest.raises(ValueError, match=r"body 0 \('base'\): body_mass is not finite"):
         jb.validate_parameters(bad)
 
 

@@ -23,7 +23,7 @@ import jax.numpy as jnp
 
 from .. import planar
 from .._types import Array, ArrayLike, Float
-from ..planar import ParamLike
+from ..planar.system import ParamLike, _float_dtype, _xp
 from ._embedded import EmbeddedPlanarSystem
 
 __all__ = [
@@ -43,8 +43,8 @@ __all__ = [
 def _prep(reference, *values):
     """Array module (``np`` for concrete inputs, ``jnp`` when traced) and the float dtype of
     ``reference``; every value converted to that dtype."""
-    xp = planar._xp(reference, *values)
-    dtype = planar._float_dtype(reference)
+    xp = _xp(reference, *values)
+    dtype = _float_dtype(reference)
     return xp, dtype, [xp.asarray(v).astype(dtype) for v in (reference, *values)]
 
 
@@ -123,7 +123,7 @@ def cart_pendulum(
     """Example 3 (table T-5): cart of mass ``m_c`` with a pendulum ``m_01``, ``a_1``, ``I_C1``."""
     xp, dt, (m, mc, a, inertia, g) = _prep(mass, cart_mass, com_distance, inertia, gravity)
     zero = xp.zeros((), dt)
-    system = planar.tree(
+    system = planar.from_parents(
         [-1],
         m.reshape(1),
         xp.stack([a, zero]).reshape(1, 2),
@@ -218,7 +218,7 @@ def oscillating_support_pendulum(
         mass, com_distance, inertia, amplitude, frequency, incline, gravity
     )
     zero = xp.zeros((), dt)
-    system = planar.tree(
+    system = planar.from_parents(
         [-1],
         m.reshape(1),
         xp.stack([a, zero]).reshape(1, 2),
@@ -365,7 +365,7 @@ def wheelset_pendulum(
         wheel_mass, wheel_inertia, radius, mass, com_distance, inertia, gravity
     )
     zero = xp.zeros((), dt)
-    system = planar.tree(
+    system = planar.from_parents(
         [-1, -1],
         xp.stack([mw, m]),
         xp.stack([xp.stack([zero, zero]), xp.stack([a, zero])]),

@@ -38,7 +38,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..joints import HINGE, JOINT_KIND_NAMES, SLIDE, JointLayout
-from ..model import Model, quat_to_matrix_np, validate_parameters
+from .._util import quat_to_matrix
+from ..model import Model, validate_parameters
 from ..tree import BodyTree
 
 __all__ = ["from_mjcf", "from_urdf", "from_mujoco", "unsupported_features"]
@@ -104,9 +105,7 @@ def from_mjcf(source, *, strict: bool = False, dtype=None) -> Model:
     Warns:
         UserWarning: one warning listing every feature jaxbody ignores (``strict=False``).
     """
-    return from_mujoco(
-        _compile(source, "from_mjcf", "MJCF"), strict=strict, dtype=dtype, _caller="from_mjcf"
-    )
+    return _from_mujoco(_compile(source, "from_mjcf", "MJCF"), strict, dtype, "from_mjcf")
 
 
 def from_urdf(source, *, strict: bool = False, dtype=None) -> Model:
@@ -118,12 +117,10 @@ def from_urdf(source, *, strict: bool = False, dtype=None) -> Model:
     jaxbody reports as not modelled). Arguments, returns, raises and warnings as in
     :func:`from_mjcf`.
     """
-    return from_mujoco(
-        _compile(source, "from_urdf", "URDF"), strict=strict, dtype=dtype, _caller="from_urdf"
-    )
+    return _from_mujoco(_compile(source, "from_urdf", "URDF"), strict, dtype, "from_urdf")
 
 
-def from_mujoco(mj_model, *, strict: bool = False, dtype=None, _caller: str = "from_mujoco") -> Model:
+def from_mujoco(mj_model, *, strict: bool = False, dtype=None) -> Model:
     """Convert a compiled ``mujoco.MjModel`` (its current arrays; it is not modified).
 
     Reads ``body_parentid``, ``body_pos``, ``body_quat``, ``body_mass``, ``body_ipos``,
@@ -134,6 +131,11 @@ def from_mujoco(mj_model, *, strict: bool = False, dtype=None, _caller: str = "f
     (non-finite values, negative masses, a moving body without mass, inertias breaking the
     triangle inequality, negative armature/damping/stiffness), naming the body or joint.
     """
+    return _from_mujoco(mj_model, strict, dtype, "from_mujoco")
+
+
+def _from_mujoco(mj_model, strict: bool, dtype, _caller: str) -> Model:
+    """:func:`from_mujoco`, with the public function's name (``_caller``) for messages."""
     mujoco = _mujoco()
     m = mj_model
     if not isinstance(m, mujoco.MjModel):
@@ -188,7 +190,7 @@ def from_mujoco(mj_model, *, strict: bool = False, dtype=None, _caller: str = "f
     iquat = f64(m.body_iquat[1:])
     inertia = np.zeros((nb, 3, 3))
     for k in range(nb):
-        R = quat_to_matrix_np(iquat[k]) if np.linalg.norm(iquat[k]) > 0 else np.eye(3)
+        R = quat_to_matrix(iquat[k]) if np.linalg.norm(iquat[k]) > 0 else np.eye(3)
         I = R @ np.diag(f64(m.body_inertia[k + 1])) @ R.T
         inertia[k] = 0.5 * (I + I.T)
     armature = f64(m.dof_armature)
@@ -247,7 +249,7 @@ def from_mujoco(mj_model, *, strict: bool = False, dtype=None, _caller: str = "f
         warnings.warn(
             f"{where} has features jaxbody does not model; they are ignored:\n{lines}",
             UserWarning,
-            stacklevel=3 if _caller != "from_mujoco" else 2,
+            stacklevel=4 if _caller != "from_mujoco" else 3,
         )
     return model
 

@@ -1,0 +1,100 @@
+"""Private index, shape and small-vector helpers shared by every module (one place each).
+
+Nothing here is physics: converting static index lists, checking array shapes before tracing
+(STYLE rule 11, first layer), the skew matrix and planar/3-D vector helpers.
+"""
+
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = ["int_tuple", "index", "check_shape", "skew", "cross2", "perp2", "rot2", "plane3", "axial3", "quat_to_matrix", "quat_multiply"]
+
+
+def int_tuple(a) -> tuple[int, ...]:
+    """Static index list as a tuple of Python ints (hashable; STYLE rule 4)."""
+    return tuple(int(v) for v in np.asarray(a, dtype=np.int64).reshape(-1).tolist())
+
+
+def index(a) -> np.ndarray:
+    """Static index list as an int32 NumPy array (a small constant when used in traced code)."""
+    return np.asarray(a, dtype=np.int32).reshape(-1)
+
+
+def check_shape(x, shape: tuple, name: str, where: str = "", dtype=None):
+    """``jnp.asarray(x)`` of the given ``shape`` or a ``ValueError`` naming ``name`` (before tracing)."""
+    x = jnp.asarray(x) if dtype is None else jnp.asarray(x, dtype)
+    if tuple(x.shape) != tuple(shape):
+        prefix = f"{where}: " if where else ""
+        raise ValueError(f"{prefix}{name} has shape {tuple(x.shape)}, expected {tuple(shape)}")
+    return x
+
+
+def skew(a):
+    """``[a]×`` with ``[a]× b = a × b`` (stacked over leading axes)."""
+    x, y, z = a[..., 0], a[..., 1], a[..., 2]
+    zero = jnp.zeros_like(x)
+    return jnp.stack([zero, -z, y, z, zero, -x, -y, x, zero], axis=-1).reshape(a.shape[:-1] + (3, 3))
+
+
+def cross2(a, b):
+    """``k · (a × b)`` of planar vectors (the z component of the 3-D cross product)."""
+    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+
+
+def perp2(v):
+    """``k × v`` of a planar vector."""
+    return jnp.stack([-v[..., 1], v[..., 0]], axis=-1)
+
+
+def rot2(theta, v):
+    """Planar vector ``v`` rotated counter-clockwise by ``theta``."""
+    c, s = jnp.cos(theta), jnp.sin(theta)
+    return jnp.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]], axis=-1)
+
+
+def plane3(v):
+    """Planar vectors ``(..., 2)`` as 3-D vectors in the plane ``z = 0``."""
+    return jnp.concatenate([v, jnp.zeros_like(v[..., :1])], axis=-1)
+
+
+def axial3(s):
+    """Scalars ``(...)`` as 3-D vectors along ``k`` (planar angular rates as spatial ones)."""
+    zero = jnp.zeros_like(s)
+    return jnp.stack([zero, zero, s], axis=-1)
+
+
+def quat_to_matrix(q):
+    """Rotation matrix of a quaternion (w, x, y, z), normalised first (gradient-safe at 0).
+
+    NumPy in, NumPy out (build time, float64); anything else goes through ``jax.numpy``.
+    """
+    xp = np if isinstance(q, np.ndarray) else jnp
+    n2 = xp.sum(q * q, axis=-1, keepdims=True)
+    # double where: the norm's derivative is infinite at q = 0
+    safe = xp.where(n2 > 0, n2, 1.0)
+    q = q / xp.sqrt(safe)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    r = xp.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        axis=-1,
+    )
+    return r.reshape(q.shape[:-1] + (3, 3))
+
+
+def quat_multiply(a, b):
+    """Hamilton product ``a ⊗ b`` of (w, x, y, z) quaternions."""
+    aw, ax, ay, az = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
+    bw, bx, by, bz = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
+    return jnp.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        axis=-1,
+    )

@@ -1,0 +1,299 @@
+"""Joint-space kernels of a :class:`~jaxbody.Model` on a state :class:`~jaxbody.Data`.
+
+Every function takes ``(model, data, ...)`` with ``data = jb.compute_data(model, q, v)``,
+reads the kinematics and augmented bodies stored there, and checks no values (they are meant
+for vector fields, solver loops and ``vmap`` batches; validate once with
+:func:`jaxbody.check_inputs`). The convenience functions ``jb.mass_matrix(model, q)`` ...
+of :mod:`jaxbody.dynamics` are these kernels behind that check.
+
+Joints are the first Maggi layer (spec §15): the joint rates ``v`` map linearly to the
+quasi-velocities of the absolute equations (absolute angular velocities ``ω_k``, relative
+pole velocities ``V_rk`` and the free-base velocity), and every joint-space equation is the
+projection of the absolute equations on a DoF's motion:
+
+* :func:`force_factors` evaluates Statement 1 (:func:`jaxbody.spatial.relative_force_factors`);
+  projecting the factors of body ``k`` on the unit motion ``S_d`` of each DoF ``d`` of that
+  body gives ``τ_d = F_k · v_d(O_0k) + M_k · ω_d`` (:func:`inverse_dynamics`); the factors
+  themselves are the joint reactions (:func:`joint_reactions`).
+* :func:`mass_matrix` is ``Aᵀ D A`` evaluated through subtree sums of augmented quantities:
+  for DoFs ``a`` (on a carrier of, or the same body as) ``b`` on body ``k``,
+  ``M_ab = S_a · 𝕀_k S_b`` where subsystem ``k`` is described by its mass ``m_k``, static
+  moment ``h_k = sum_{i in S(k)} m̄_i`` and inertia
+  ``K_k = sum_{l in S(k)} (I_l - [d_kl]×[m̄_l]× - [m̄_l]×[d_kl]×)``, ``d_kl = O_0l - O_0k``.
+
+Conventions (docs/conventions.md):
+
+* ``M(q) a + bias(q, v) = tau + passive + Jᵀ external``: ``bias`` = Coriolis, centrifugal
+  and gravity terms (MuJoCo ``qfrc_bias``); ``passive`` = joint springs and dampers (MuJoCo
+  ``qfrc_passive``), included only with ``include_passive=True``.
+* ``external``: loads per body ``(n_body, 6)`` = world force and torque at the body's centre
+  of mass (MuJoCo ``xfrc_applied``).
+* Reactions: ``(force, moment)`` the parent exerts on body ``k``, moment about ``O_0k``.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._types import Array, ArrayLike, Float
+from ._util import check_shape, index
+from .augmented import subtree_static_moment
+from .data import Data
+from .kinematics import (
+    body_accelerations,
+    dof_motion_at,
+    dof_motion_plucker,
+    point_acceleration,
+    point_velocity,
+    quat_multiply,
+    reference_point,
+    rigid_body_kinetic_energy,
+)
+from .linalg import solve_spd
+from .model import Model
+from .spatial import ForceFactors, relative_force_factors
+
+__all__ = [
+    "mass_matrix",
+    "bias_forces",
+    "force_factors",
+    "inverse_dynamics",
+    "forward_dynamics",
+    "joint_reactions",
+    "kinetic_energy",
+    "potential_energy",
+    "passive_forces",
+]
+
+
+def _composite_about(model: Model, data: Data, point):
+    """Mass, static moment and inertia of every subsystem about one ``point``.
+
+    From the augmented bodies (spec §3): the subsystem static moment about ``O_0k`` is
+    ``h_k = sum_{i in S(k)} m̄_i`` and its inertia ``K_k = sum_{l in S(k)} (I_l - [d_kl]×[m̄_l]×
+    - [m̄_l]×[d_kl]×)`` with ``d_kl = O_0l - O_0k``; moved to ``point`` (``x_l = O_0l - point``)
+    this is ``sum_{l in S(k)} (I_l - sym(x_l, m̄_l)) - m_k [x_k]×²`` and ``h_k + m_k x_k``.
+    """
+    tree, aug = model.tree, data.augmented
+    x = data.base_point - point
+    mbar, m = aug.static_moment, aug.subtree_mass
+    eye = jnp.eye(3, dtype=x.dtype)
+    xm = jnp.sum(x * mbar, axis=-1)[:, None, None]
+    term = aug.augmented_inertia + 2.0 * xm * eye - mbar[:, :, None] * x[:, None, :] - x[:, :, None] * mbar[:, None, :]
+    x2 = jnp.sum(x * x, axis=-1)[:, None, None]
+    K = tree.subtree_sum(term) + m[:, None, None] * (x2 * eye - x[:, :, None] * x[:, None, :])
+    h = subtree_static_moment(tree, mbar) + m[:, None] * x
+    return m, h, K
+
+
+def mass_matrix(model: Model, data: Data) -> Float[Array, "nv nv"]:
+    """Joint-space mass matrix ``M(q)`` in the coordinates of ``v`` (armature included).
+
+    ``M_ab = S_a · 𝕀_k S_b`` for DoF ``a`` supporting DoF ``b`` on body ``k`` (module
+    docstring), all in Plücker coordinates about one point.
+    """
+    # One common point (the base point of body 0) keeps every lever arm short and every sum
+    # over DoFs a single dense product.
+    c0 = reference_point(data)
+    m, h, K = _composite_about(model, data, c0)
+    k = index(model.joints.dof_body)
+    ang, lin0 = dof_motion_plucker(data, c0)
+    # wrench of subsystem k moving with the unit motion of DoF b, about c0
+    p = m[k][:, None] * lin0 + jnp.cross(ang, h[k])
+    L = jnp.cross(h[k], lin0) + jnp.einsum("nij,nj->ni", K[k], ang)
+    P = lin0 @ p.T + ang @ L.T  # P[a, b] = S_a · 𝕀_k(b) S_b
+    # P is only right where a supports b (then body(b)'s subsystem is the one that both DoFs
+    # move); keep that upper triangle and mirror it, so M is exactly symmetric in floating point.
+    U = model.joints.mass_mask(P.dtype) * P
+    return U + U.T - jnp.diag(jnp.diag(U)) + jnp.diag(model.dof_armature)
+
+
+def _external_loads(model: Model, data: Data, external):
+    """``(F_r, M_r about O_0k)`` from MuJoCo-style ``xfrc_applied`` (force, torque at the CM)."""
+    if external is None:
+        return None, None
+    external = check_shape(external, (model.n_body, 6), "external", dtype=data.com.dtype)
+    f, t = external[:, :3], external[:, 3:]
+    return f, t + jnp.cross(data.com - data.base_point, f)
+
+
+def force_factors(
+    model: Model,
+    data: Data,
+    a: Float[ArrayLike, " nv"],
+    *,
+    external: Float[ArrayLike, "n_body 6"] | None = None,
+) -> ForceFactors:
+    """Statement 1 at ``(q, v, a)``: relative force factors of every body (spec eqs 1–4).
+
+    ``force``/``moment`` are what the parent (ground for roots) exerts on body ``k`` at
+    ``O_0k``: constraint reaction plus drive.
+    """
+    tree = model.tree
+    a = check_shape(a, (model.nv,), "a", dtype=data.com.dtype)
+    aug = data.augmented
+    motion = body_accelerations(model, data, data.v, a)
+    par = tree.parent_array
+    has_parent = jnp.asarray(par >= 0)[:, None]
+    pidx = np.maximum(par, 0)
+    free = np.asarray(model.joints.body_is_free, dtype=bool)[:, None]
+    zero = jnp.zeros_like(data.base_point)
+    # motion of the parent's material point at O_0k (ground: at rest)
+    parent_motion = jax.tree.map(lambda x: x[pidx], motion)
+    vp = jnp.where(has_parent, point_velocity(parent_motion, data.base_point), 0.0)
+    ap = jnp.where(has_parent, point_acceleration(parent_motion, data.base_point), 0.0)
+    w, e = motion.angular_velocity, motion.angular_acceleration
+    # Relative motion of the pole O_k with respect to O_0k, derivatives taken in body-k axes
+    # (spec §2 remark): remove the rigid-body part ω×ρ from the world-frame derivatives.
+    rho = data.pole - data.base_point
+    rho_dot = point_velocity(motion, data.pole) - vp
+    rho_ddot = point_acceleration(motion, data.pole) - ap
+    Vr = rho_dot - jnp.cross(w, rho)
+    Wr = rho_ddot - jnp.cross(e, rho) - jnp.cross(w, rho_dot) - jnp.cross(w, Vr)
+    # A free body's base point is the origin of a translating carrier frame (Cor. 1): its
+    # motion enters as the root acceleration W_0, not as a relative motion.
+    Vr = jnp.where(free, 0.0, Vr)
+    Wr = jnp.where(free, 0.0, Wr)
+    W_root = jnp.where(free, point_acceleration(motion, data.base_point), zero)
+    Fr, Mr = _external_loads(model, data, external)
+    return relative_force_factors(
+        tree, aug.subtree_mass, aug.static_moment, aug.augmented_inertia, data.link,
+        w, e, Vr, Wr, W_root, model.gravity, Fr, Mr,
+    )
+
+
+def _project(model: Model, data: Data, factors: ForceFactors):
+    """Generalized forces of the DoFs from the force factors of their bodies."""
+    if model.nv == 0:
+        return jnp.zeros((0,), data.com.dtype)
+    k = index(model.joints.dof_body)
+    ang, vel = dof_motion_at(data, np.arange(model.nv), data.base_point[k])
+    return jnp.sum(factors.force[k] * vel, axis=-1) + jnp.sum(factors.moment[k] * ang, axis=-1)
+
+
+def bias_forces(model: Model, data: Data) -> Float[Array, " nv"]:
+    """Coriolis, centrifugal and gravity forces (MuJoCo ``qfrc_bias``): ``tau`` at ``a = 0``."""
+    return _project(model, data, force_factors(model, data, jnp.zeros_like(data.v)))
+
+
+def inverse_dynamics(
+    model: Model,
+    data: Data,
+    a: Float[ArrayLike, " nv"],
+    *,
+    external: Float[ArrayLike, "n_body 6"] | None = None,
+    include_passive: bool = False,
+) -> Float[Array, " nv"]:
+    """Joint forces ``tau`` that give accelerations ``a``, via Statement 1.
+
+    ``tau = M a + bias - Jᵀ external`` and, with ``include_passive=True``, minus the passive
+    forces (``tau`` is then what the actuators add to the springs and dampers).
+
+    MuJoCo's ``mj_inverse`` returns ``M a + qfrc_bias - qfrc_passive``: it equals
+    ``include_passive=True``. The default (``False``) leaves springs and dampers out, so a
+    computed-torque law on a damped model does not cancel the damping twice.
+    """
+    a = check_shape(a, (model.nv,), "a", dtype=data.com.dtype)
+    tau = _project(model, data, force_factors(model, data, a, external=external))
+    tau = tau + model.dof_armature * a
+    if include_passive:
+        tau = tau - passive_forces(model, data)
+    return tau
+
+
+def forward_dynamics(
+    model: Model,
+    data: Data,
+    tau: Float[ArrayLike, " nv"] | None = None,
+    *,
+    external: Float[ArrayLike, "n_body 6"] | None = None,
+    include_passive: bool = False,
+) -> Float[Array, " nv"]:
+    """Accelerations ``a = M⁻¹ (tau - bias + Jᵀ external [+ passive])`` by a Cholesky solve.
+
+    ``include_passive=True`` adds the joint springs and dampers (MuJoCo's ``mj_forward``
+    with ``qfrc_passive``; what :meth:`jaxbody.Model.acceleration` and ``jb.simulate`` use).
+    The solve is :func:`jaxbody.linalg.solve_spd` (no LAPACK call, safe under large ``vmap``
+    batches on CPU, no explicit inverse).
+    """
+    rhs = -_project(model, data, force_factors(model, data, jnp.zeros_like(data.v), external=external))
+    if tau is not None:
+        rhs = rhs + check_shape(tau, (model.nv,), "tau", dtype=rhs.dtype)
+    if include_passive:
+        rhs = rhs + passive_forces(model, data)
+    return solve_spd(mass_matrix(model, data), rhs)
+
+
+def joint_reactions(
+    model: Model,
+    data: Data,
+    a: Float[ArrayLike, " nv"],
+    *,
+    external: Float[ArrayLike, "n_body 6"] | None = None,
+) -> tuple[Float[Array, "n_body 3"], Float[Array, "n_body 3"]]:
+    """``(force, moment)`` the parent exerts on each body at its base point ``O_0k`` (world).
+
+    The relative force factors ``F_k``, ``M_k`` of Statement 1 (spec eqs 1–2): constraint
+    reaction plus drive; the moment is about ``O_0k`` (the anchor of the body's first joint,
+    the body origin for welded and free bodies).
+    """
+    f = force_factors(model, data, a, external=external)
+    return f.force, f.moment
+
+
+def kinetic_energy(model: Model, data: Data) -> Float[Array, ""]:
+    """``T = sum_k ½ m_0k |v_Ck|² + ½ ω_k·I_Ck ω_k`` from body velocities (armature adds ½ a v²)."""
+    w, u = data.angular_velocity, data.base_point_velocity
+    vc = u + jnp.cross(w, data.com - data.base_point)
+    t = rigid_body_kinetic_energy(model.body_mass, vc, w, data.central_inertia)
+    return t + 0.5 * jnp.sum(model.dof_armature * data.v * data.v)
+
+
+def _quat_log_diff(qa, qb):
+    """Rotation vector of ``qb⁻¹ ⊗ qa`` (MuJoCo ``mju_subQuat``), gradient-safe at zero."""
+    conj = qb * jnp.asarray([1.0, -1.0, -1.0, -1.0], qb.dtype)
+    d = quat_multiply(conj, qa)
+    # q and -q are the same rotation: take the short way round (angle in [0, π])
+    d = d * jnp.where(d[..., :1] < 0, -1.0, 1.0)
+    s2 = jnp.sum(d[..., 1:] ** 2, axis=-1, keepdims=True)
+    # double where: sqrt and angle/s have infinite derivatives at the identity
+    safe = jnp.where(s2 > 0, s2, 1.0)
+    s = jnp.sqrt(safe)
+    angle = 2.0 * jnp.arctan2(s, d[..., :1])
+    # angle/s -> 2 as s -> 0 (d_w -> 1)
+    scale = jnp.where(s2 > 1e-30, angle / s, 2.0)
+    return d[..., 1:] * scale
+
+
+def _spring_terms(model: Model, q):
+    """Per joint kind: displacement vectors from the spring reference (for force and energy)."""
+    out = []  # (dof indices, displacement, stiffness per dof)
+    for kind, js, qa, da in model.joints.kind_groups():
+        k = model.joint_stiffness[js]
+        if kind.quaternion is None:
+            out.append((da[:, None], (q[qa] - model.qpos_spring[qa])[:, None], k))
+            continue
+        n = kind.translation
+        if n:
+            idx = qa[:, None] + np.arange(n)
+            out.append((da[:, None] + np.arange(n), q[idx] - model.qpos_spring[idx], k))
+        idx = qa[:, None] + kind.quaternion + np.arange(4)
+        qn = q[idx] / jnp.linalg.norm(q[idx], axis=-1, keepdims=True)
+        out.append((da[:, None] + n + np.arange(3), _quat_log_diff(qn, model.qpos_spring[idx]), k))
+    return out
+
+
+def potential_energy(model: Model, data: Data) -> Float[Array, ""]:
+    """Gravity plus joint-spring potential energy (as MuJoCo ``mj_energyPos``)."""
+    e = -jnp.sum(model.body_mass * (data.com @ model.gravity))
+    for _, disp, k in _spring_terms(model, data.q):
+        e = e + 0.5 * jnp.sum(k * jnp.sum(disp * disp, axis=-1))
+    return e
+
+
+def passive_forces(model: Model, data: Data) -> Float[Array, " nv"]:
+    """Joint springs towards ``qpos_spring`` and viscous damping (MuJoCo ``qfrc_passive``)."""
+    f = -model.dof_damping * data.v
+    for dofs, disp, k in _spring_terms(model, data.q):
+        f = f.at[dofs].add(-k[:, None] * disp)
+    return f

@@ -1,0 +1,66 @@
+"""Joint-space view of planar systems: relative angles and Lagrange's equations in them (spec §9.4).
+
+``α = T q`` maps joint (relative) angles to absolute ones; ``Tᵀ ℳ T`` and ``Tᵀ h`` are the mass
+matrix and bias of the joint-angle equations (the coordinates of a spatial model with the same
+hinges, see :func:`jaxbody.planar.from_model`).
+"""
+
+import jax.numpy as jnp
+import numpy as np
+
+from .._types import Array, Float
+from .._util import check_shape, index
+from .dynamics import _split, bias_forces, mass_matrix
+from .system import PlanarSystem
+
+__all__ = ["absolute_to_relative", "relative_to_absolute", "joint_mass_matrix", "joint_bias_forces"]
+
+
+def absolute_to_relative(system: PlanarSystem, q: Float[Array, " nq"]) -> Float[Array, " nq"]:
+    """Joint (relative) angles ``q_k = θ_k − θ_{p(k)}`` (spec §9.4, ``α = T q``).
+
+    Roots keep their angle (relative to the ground/base, in the system's angle convention); base
+    coordinates pass through. Linear, so it converts rates and accelerations alike.
+    """
+    q = check_shape(q, (system.nq,), "q", "planar system")
+    qb, a = _split(system, q)
+    parent = np.asarray(system.tree.parent)
+    ap = jnp.where(jnp.asarray(parent >= 0), a[index(np.maximum(parent, 0))], 0.0)
+    return jnp.concatenate([qb, a - ap])
+
+
+def relative_to_absolute(system: PlanarSystem, q_rel: Float[Array, " nq"]) -> Float[Array, " nq"]:
+    """Absolute angles ``α = T q`` from joint angles: ``α_k = Σ_{i∈C(k)∪{k}} q_i`` (spec §9.4)."""
+    q_rel = check_shape(q_rel, (system.nq,), "q_rel", "planar system")
+    qb, r = _split(system, q_rel)
+    return jnp.concatenate([qb, system.tree.path_sum(r)])
+
+
+def _transpose_path(system, x):
+    """``Tᵀ x`` over the leading (angle) axis: ``(Tᵀx)_i = Σ_{k∈S(i)} x_k``."""
+    return system.tree.subtree_sum(x)
+
+
+def joint_mass_matrix(system: PlanarSystem, q: Float[Array, " nq"]) -> Float[Array, "nv nv"]:
+    """Joint-space mass matrix ``Tᵀ ℳ T`` (spec §9.4; identity on the base block)."""
+    M = mass_matrix(system, q)
+    nb = system.n_base
+    Mbb, Mbt, Mtt = M[:nb, :nb], M[:nb, nb:], M[nb:, nb:]
+    Mtt_q = _transpose_path(system, _transpose_path(system, Mtt).T).T
+    if nb == 0:
+        return Mtt_q
+    Mbt_q = _transpose_path(system, Mbt.T).T
+    return jnp.block([[Mbb, Mbt_q], [Mbt_q.T, Mtt_q]])
+
+
+def joint_bias_forces(
+    system: PlanarSystem, q: Float[Array, " nq"], v: Float[Array, " nv"]
+) -> Float[Array, " nv"]:
+    """``Tᵀ h``: velocity and gravity terms of Lagrange's equations in joint angles (spec §9.4).
+
+    ``v`` are the absolute rates (convert joint rates with :func:`relative_to_absolute`).
+    """
+    hb, ht = _split(system, bias_forces(system, q, v))
+    return jnp.concatenate([hb, _transpose_path(system, ht)])
+
+
