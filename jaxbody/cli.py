@@ -668,7 +668,11 @@ def _skeleton(src: _Source, t, q):
 
         origin, anchor = jax.jit(jax.vmap(frame))(jnp.asarray(q))
         origin, anchor = np.asarray(origin), np.asarray(anchor)
-        start = np.where(parent[None, :, None] >= 0, origin[:, np.maximum(parent, 0)], 0.0)
+        # A root hangs from the world origin unless it floats (free joint): then no link.
+        free = np.zeros(model.n_body, dtype=bool)
+        free[[b for kind, b in zip(model.joints.type, model.joints.body) if kind == jb.FREE]] = True
+        root_start = np.where(free[None, :, None], anchor, 0.0)
+        start = np.where(parent[None, :, None] >= 0, origin[:, np.maximum(parent, 0)], root_start)
         return np.stack([start, anchor, origin], axis=2), 3
 
     from . import planar
@@ -717,7 +721,8 @@ def _animate(path, src, t, q, max_frames):
     ax.set_ylim(lo[1] - pad, hi[1] + pad)
     ax.set_aspect("equal")
     ax.set_title(src.name + (" (oblique view, z up)" if dim == 3 else " (plane of motion)"))
-    ax.plot([lo[0] - pad, hi[0] + pad], [0, 0], color="0.85", lw=0.8, zorder=0)
+    if dim == 2:  # the horizontal through the world origin
+        ax.plot([lo[0] - pad, hi[0] + pad], [0, 0], color="0.85", lw=0.8, zorder=0)
     n_body = lines.shape[1]
     links = [ax.plot([], [], "-", color="C0", lw=2)[0] for _ in range(n_body)]
     joints = ax.plot([], [], "o", color="C3", ms=4)[0]

@@ -95,6 +95,9 @@ def test_simulate_example_end_to_end(tmp_path):
         assert f"wrote {out / name}" in r.stdout
     assert (out / "traj.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert (out / "traj.gif").read_bytes()[:6] == b"GIF89a"
+    from PIL import Image
+
+    assert Image.open(out / "traj.gif").n_frames == 8
 
     d = np.load(out / "traj.npz")
     assert bool(d["complete"]) and str(d["status"]) == "complete"
@@ -191,6 +194,36 @@ def test_interrupted_run_keeps_what_it_finished(tmp_path):
     t = d["t"]
     assert len(t) >= 101 and t[0] == 0 and np.all(np.diff(t) > 0) and t[-1] < 20000
     assert d["q"].shape == (len(t), 2) and np.all(np.isfinite(d["q"]))
+
+
+def test_skeleton_points_match_mujoco_and_planar_geometry(tmp_path):
+    from jaxbody import cli
+
+    xml = tmp_path / "pendulum.xml"
+    xml.write_text(PENDULUM_XML)
+    src = cli._load(str(xml), "swing")
+    q = np.array([[0.7, -0.4], [-1.2, 2.0]])
+    lines, dim = cli._skeleton(src, np.zeros(2), q)
+    assert dim == 3 and lines.shape == (2, 2, 3, 3)
+    m = mujoco.MjModel.from_xml_string(PENDULUM_XML)
+    d = mujoco.MjData(m)
+    for f in range(2):
+        d.qpos[:] = q[f]
+        mujoco.mj_kinematics(m, d)
+        np.testing.assert_allclose(lines[f, :, 2], d.xpos[1:], atol=1e-12)  # body origins
+        np.testing.assert_allclose(lines[f, :, 1], d.xanchor, atol=1e-12)  # joint points
+        np.testing.assert_allclose(lines[f, 1, 0], d.xpos[1], atol=1e-12)  # parent's origin
+        np.testing.assert_allclose(lines[f, 0, 0], 0.0, atol=0)  # root hangs from the world
+
+    src = cli._load("double_pendulum")
+    alpha = np.array([[0.3, -1.1]])
+    lines, dim = cli._skeleton(src, np.zeros(1), alpha)
+    a1, a2 = alpha[0]
+    down = lambda a: np.array([np.sin(a), -np.cos(a)])  # angles from the downward vertical
+    assert dim == 2
+    np.testing.assert_allclose(lines[0, 0], [[0, 0], [0, 0], 0.4 * down(a1)], atol=1e-14)
+    np.testing.assert_allclose(lines[0, 1], [[0, 0], 0.8 * down(a1), 0.8 * down(a1) + 0.3 * down(a2)],
+                               atol=1e-14)
 
 
 # ------------------------------------------------------------------ errors
