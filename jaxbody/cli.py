@@ -383,6 +383,9 @@ def _initial_state(src: _Source, args):
             raise UsageError(f"--v0 has {len(args.v0)} values but {src.name} has nv = {nv} "
                              f"({', '.join(src.v_labels)})")
         v0 = jnp.asarray(args.v0, dtype=q0.dtype)
+    given = [name for name, x in (("--q0", args.q0), ("--v0", args.v0)) if x is not None]
+    if given:
+        src.start = f"{' and '.join(given)} (otherwise {src.start})"
     return q0, v0
 
 
