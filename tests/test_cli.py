@@ -175,7 +175,10 @@ def test_interrupted_run_keeps_what_it_finished(tmp_path):
     npz = tmp_path / "long.npz"
     proc = run_cli("simulate", "double_pendulum", "--t1", "20000", "--saves", "200001",
                    "--chunks", "2000", "--rtol", "1e-12", "--atol", "1e-12", "--out", npz,
-                   "--no-progress", cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+                   "--no-progress", cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                   # as from a terminal: a shell without job control starts background
+                   # commands with SIGINT ignored, which the child would inherit
+                   preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.monotonic() + 240
         while not npz.exists() and proc.poll() is None and time.monotonic() < deadline:
