@@ -220,17 +220,17 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``jaxbody`` command; returns the exit status."""
     argv = list(sys.argv[1:] if argv is None else argv)
+    commands = {"simulate": _simulate, "info": _info, "examples": _examples, "demo": _demo,
+                "balance": _balance}
     if argv and argv[0] == "balance":
         # Everything after `balance` belongs to the design module's own parser.
-        from .design import cli_balance
-
-        return cli_balance(argv[1:])
-    parser = _parser()
-    args = parser.parse_args(argv)
-    commands = {"simulate": _simulate, "info": _info, "examples": _examples, "demo": _demo}
-    if args.command not in commands:
-        parser.print_help()
-        return 2
+        args = argparse.Namespace(command="balance", argv=argv[1:])
+    else:
+        parser = _parser()
+        args = parser.parse_args(argv)
+        if args.command not in commands:
+            parser.print_help()
+            return 2
     try:
         return commands[args.command](args)
     except UsageError as e:
@@ -893,6 +893,13 @@ def _examples(args) -> int:
         print(f"  {name:<30} {summary}")
     print("Any MJCF (.xml) or URDF (.urdf) file works as well: `jaxbody info FILE`.")
     return 0
+
+
+# ------------------------------------------------------------------------------ balance
+def _balance(args) -> int:
+    from .design import cli_balance
+
+    return cli_balance(args.argv)
 
 
 # ------------------------------------------------------------------------------ demo
