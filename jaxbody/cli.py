@@ -707,9 +707,9 @@ def _project(points, azimuth=math.radians(45.0), elevation=math.radians(25.0)):
 
 
 def _animate(path, src, t, q, max_frames):
-    """GIF of the skeleton moving (matplotlib + Pillow)."""
+    """GIF of the skeleton moving (matplotlib frames, assembled by Pillow)."""
     import numpy as np
-    from matplotlib.animation import FuncAnimation, PillowWriter
+    from PIL import Image
 
     plt = _plt()
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -719,7 +719,7 @@ def _animate(path, src, t, q, max_frames):
         lines = _project(lines)
     lo, hi = lines.reshape(-1, 2).min(axis=0), lines.reshape(-1, 2).max(axis=0)
     pad = 0.1 * max(float(np.max(hi - lo)), 1e-3)
-    fig, ax = plt.subplots(figsize=(5, 5), constrained_layout=True)
+    fig, ax = plt.subplots(figsize=(5, 5), dpi=90, constrained_layout=True)
     ax.set_xlim(lo[0] - pad, hi[0] + pad)
     ax.set_ylim(lo[1] - pad, hi[1] + pad)
     ax.set_aspect("equal")
@@ -731,20 +731,24 @@ def _animate(path, src, t, q, max_frames):
     joints = ax.plot([], [], "o", color="C3", ms=4)[0]
     points = ax.plot([], [], "o", color="C0", ms=3)[0]
     label = ax.text(0.02, 0.96, "", transform=ax.transAxes, va="top")
-
-    def draw(f):
+    fig.canvas.draw()
+    # The layout is fixed after the first draw: re-solving it for every frame is most of
+    # the cost of a frame.
+    fig.set_layout_engine("none")
+    frames = []
+    for f in range(len(idx)):
         for k in range(n_body):
             links[k].set_data(lines[f, k, :, 0], lines[f, k, :, 1])
         joints.set_data(lines[f, :, 1, 0], lines[f, :, 1, 1])
         points.set_data(lines[f, :, 2, 0], lines[f, :, 2, 1])
         label.set_text(f"t = {t[idx][f]:.3f} s")
-        return [*links, joints, points, label]
-
-    anim = FuncAnimation(fig, draw, frames=len(idx), blit=True)
+        fig.canvas.draw()
+        rgb = np.asarray(fig.canvas.buffer_rgba())[..., :3]
+        frames.append(Image.fromarray(rgb).quantize(colors=64, method=Image.Quantize.MEDIANCUT))
+    plt.close(fig)
     span = float(t[idx][-1] - t[idx][0])
     fps = max(1, min(30, round(len(idx) / span))) if span > 0 else 10
-    anim.save(path, writer=PillowWriter(fps=fps))
-    plt.close(fig)
+    frames[0].save(path, save_all=True, append_images=frames[1:], duration=round(1000 / fps), loop=0)
 
 
 # ------------------------------------------------------------------------------ info
