@@ -488,13 +488,22 @@ def _fmt(x):
 
 
 def _chunk_times(t1, n_save, n_chunks):
-    """Saved times split into chunks that share their end points."""
+    """Saved times split into chunks that share their end points.
+
+    Returns ``(ts, n)`` per chunk: every ``ts`` has the same length, so the solve compiles
+    once; a shorter last chunk repeats its final time, and only its first ``n`` entries are
+    kept.
+    """
     import numpy as np
 
     ts = np.linspace(0.0, t1, n_save)
     intervals = n_save - 1
     step = max(1, math.ceil(intervals / min(n_chunks, intervals)))
-    return [ts[i:min(i + step, intervals) + 1] for i in range(0, intervals, step)]
+    chunks = []
+    for i in range(0, intervals, step):
+        part = ts[i:min(i + step, intervals) + 1]
+        chunks.append((np.pad(part, (0, step + 1 - len(part)), mode="edge"), len(part)))
+    return chunks
 
 
 def _simulate(args) -> int:
@@ -523,7 +532,7 @@ def _simulate(args) -> int:
     status, failure = "running", None
     start = time.perf_counter()
     try:
-        for k, ts in enumerate(chunks):
+        for k, (ts, n) in enumerate(chunks):
             ts_j = jnp.asarray(ts, dtype=q0.dtype)
             try:
                 sol = _simulate_chunk(src.system, q, v, ts_j, args)
@@ -532,8 +541,8 @@ def _simulate(args) -> int:
                     hint = " (give --dt)" if "dt0" in str(e) else ""
                     raise UsageError(_one_line(e) + hint) from None
                 raise
-            t, qs, vs = np.asarray(sol.t), np.asarray(sol.q), np.asarray(sol.v)
-            energy = None if sol.energy is None else np.asarray(sol.energy)
+            t, qs, vs = np.asarray(sol.t)[:n], np.asarray(sol.q)[:n], np.asarray(sol.v)[:n]
+            energy = None if sol.energy is None else np.asarray(sol.energy)[:n]
             for key in stats:
                 stats[key] += int(sol.stats[key])
             ok = bool(sol.result == _successful())
@@ -549,7 +558,7 @@ def _simulate(args) -> int:
             progress.update(float(ts[-1] - ts[0]))
             if not ok:
                 break
-            q, v = sol.q[-1], sol.v[-1]
+            q, v = sol.q[n - 1], sol.v[n - 1]
     except KeyboardInterrupt:
         status = "interrupted"
         files.write_npz(status)

@@ -120,10 +120,12 @@ def test_simulate_example_end_to_end(tmp_path):
 def test_simulate_mjcf_keyframe_matches_mujoco_rk4(tmp_path):
     xml = tmp_path / "pendulum.xml"
     xml.write_text(PENDULUM_XML)
-    r = run_cli("simulate", xml, "--keyframe", "swing", "--t1", "0.2", "--saves", "5",
-                "--chunks", "2", "--rtol", "1e-12", "--atol", "1e-12", "--csv", tmp_path / "p.csv",
+    # 5 intervals in chunks of 2, 2 and 1 (the last one padded to the same length)
+    r = run_cli("simulate", xml, "--keyframe", "swing", "--t1", "0.25", "--saves", "6",
+                "--chunks", "3", "--rtol", "1e-12", "--atol", "1e-12", "--csv", tmp_path / "p.csv",
                 "--no-progress", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
+    assert "in 3 chunks" in r.stdout
     header, rows = read_csv(tmp_path / "p.csv")
     assert header == ["t", "q:shoulder", "q:elbow", "v:shoulder", "v:elbow", "energy"]
     # Without --out a .npz is not written unless no output at all is asked for.
@@ -135,11 +137,28 @@ def test_simulate_mjcf_keyframe_matches_mujoco_rk4(tmp_path):
     d = mujoco.MjData(m)
     mujoco.mj_resetDataKeyframe(m, d, 0)
     np.testing.assert_array_equal(rows[0, 1:5], [0.7, -0.4, 0.5, 1.5])
-    for i in range(1, 5):
+    np.testing.assert_allclose(rows[:, 0], np.linspace(0, 0.25, 6), atol=1e-15)
+    for i in range(1, 6):
         while d.time < rows[i, 0] - 1e-9:
             mujoco.mj_step(m, d)
         np.testing.assert_allclose(rows[i, 1:3], d.qpos, rtol=0, atol=1e-9)
         np.testing.assert_allclose(rows[i, 3:5], d.qvel, rtol=0, atol=1e-8)
+
+
+@pytest.mark.parametrize("n_save, n_chunks", [(201, 10), (6, 3), (31, 7), (3, 10), (2, 1)])
+def test_chunks_share_end_points_and_one_length(n_save, n_chunks):
+    from jaxbody.cli import _chunk_times
+
+    chunks = _chunk_times(2.0, n_save, n_chunks)
+    assert len(chunks) <= n_chunks
+    assert len({len(ts) for ts, _ in chunks}) == 1  # one compiled solve
+    real = [ts[:n] for ts, n in chunks]
+    for a, b in zip(real, real[1:]):
+        assert a[-1] == b[0]
+    for ts, n in chunks:
+        assert np.all(ts[n:] == ts[n - 1])  # padding repeats the chunk's end
+    np.testing.assert_array_equal(np.concatenate([real[0]] + [r[1:] for r in real[1:]]),
+                                  np.linspace(0, 2.0, n_save))
 
 
 def test_default_output_is_an_npz_under_outputs(tmp_path):
