@@ -800,7 +800,7 @@ def _info_model(jb, src, model):
     print(f"  {model.n_body} bodies, {model.n_joint} joints, nq = {model.nq}, nv = {model.nv} "
           "(q, v laid out as MuJoCo's qpos, qvel; body k = MuJoCo body k+1)")
     print(f"  total mass {mass.sum():.6g} kg")
-    print("tree (body k, name, mass; joints with their qpos/qvel addresses and axes):")
+    print("tree (body k, name, mass; joints with their q/v addresses and axes in the body frame):")
 
     def show(k, depth):
         print(f"  {'  ' * depth}{k:>3} {names[k]}  mass {mass[k]:.6g} kg")
