@@ -77,7 +77,7 @@ def _spatial_kinetic_energy(model: Model, kin, v):
     return t + 0.5 * jnp.sum(model.dof_armature * v * v)
 
 
-def _planar_from_model(model: Model, tol: float = 1e-9):
+def _planar_from_model(model: Model, gravity=None, tol: float = 1e-9):
     """The planar system of a model whose hinges are parallel, or ``None``.
 
     Body axes of the planar system coincide with the plane basis ``(e1, e2)`` at the reference
@@ -104,7 +104,9 @@ def _planar_from_model(model: Model, tol: float = 1e-9):
     if np.any(np.linalg.norm(np.cross(axes, n), axis=-1) > tol):
         return None
     signs = np.sign(axes @ n)
-    g = np.asarray(model.gravity)
+    if gravity is not None and not _concrete(gravity):
+        return None
+    g = np.zeros(3) if gravity is None else np.asarray(gravity, dtype=float)
     gn = np.linalg.norm(g)
     if gn > 0 and abs(g @ n) > tol * gn:
         return None
@@ -477,7 +479,8 @@ def scene(
     declared.extend(effects)
 
     planar_ok = planar is not False and loads is None and constraints is None
-    converted = _planar_from_model(model) if planar_ok else None
+    grav = [e.vector for e in declared if isinstance(e, Gravity)]
+    converted = _planar_from_model(model, grav[0] if grav else None) if planar_ok else None
     if planar is True and converted is None:
         raise ValueError(
             "scene: planar=True needs hinge joints only (one per body, no armature), parallel axes, "
