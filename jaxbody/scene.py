@@ -97,6 +97,15 @@ def _planar_from_model(model: Model, gravity=None, tol: float = 1e-9):
         return None
     if np.any(np.asarray(model.dof_armature) != 0):
         return None
+    # concrete model: evaluate now even when the scene is built inside a jit trace
+    with jax.ensure_compile_time_eval():
+        return _planar_conversion(model, gravity, tol)
+
+
+def _planar_conversion(model, gravity, tol):
+    from . import planar
+    from .kinematics import forward_kinematics
+
     kin = forward_kinematics(model, model.qpos0)
     axes = np.asarray(kin.dof_angular)
     axes = axes / np.linalg.norm(axes, axis=-1, keepdims=True)

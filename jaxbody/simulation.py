@@ -700,8 +700,10 @@ def _reason(sol):
 
 @eqx.filter_jit
 def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps, adjoint, meter, event, layout):
-    subs = [saveat.subs if saveat.subs is not None else diffrax.SubSaveAt(ts=saveat.ts, t0=saveat.t0, t1=saveat.t1, steps=saveat.steps),
-            diffrax.SubSaveAt(t1=True)]
+    main = saveat.subs if saveat.subs is not None else diffrax.SubSaveAt(ts=saveat.ts, t0=saveat.t0, t1=saveat.t1, steps=saveat.steps)
+    # the end state is saved separately, except with backsolve (which takes no SaveAt(subs=...)):
+    # there the last saved point stands for it
+    single = isinstance(adjoint, diffrax.BacksolveAdjoint)
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(_vector_field),
         solver,
@@ -710,7 +712,7 @@ def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps,
         dt0,
         y0,
         args=(scene, valid),
-        saveat=diffrax.SaveAt(subs=subs),
+        saveat=diffrax.SaveAt(subs=main) if single else diffrax.SaveAt(subs=[main, diffrax.SubSaveAt(t1=True)]),
         stepsize_controller=controller,
         max_steps=max_steps,
         adjoint=adjoint,
@@ -718,7 +720,8 @@ def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps,
         progress_meter=meter,
         event=event,
     )
-    ys, yf = sol.ys
+    ys, yf = (sol.ys, sol.ys) if single else sol.ys
+    ts, tf = (sol.ts, sol.ts) if single else sol.ts
     q, v = ys[0], ys[1]
     finite = jnp.all(jnp.isfinite(q), axis=-1) & jnp.all(jnp.isfinite(v), axis=-1)
     work = {}
@@ -738,13 +741,13 @@ def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps,
     if scene.constraints is not None:
         cdrift = jnp.where(finite[:, None], jax.vmap(scene.constraint_drift)(qs, vs), jnp.nan)
         reactions = jnp.where(
-            finite[:, None], jax.vmap(lambda tt, a, b: scene.evaluate(tt, a, b)[2])(jnp.where(finite, sol.ts[0], t0), qs, vs), jnp.nan
+            finite[:, None], jax.vmap(lambda tt, a, b: scene.evaluate(tt, a, b)[2])(jnp.where(finite, ts, t0), qs, vs), jnp.nan
         )
     stats = {k: jnp.asarray(sol.stats[k]) for k in ("num_steps", "num_accepted_steps", "num_rejected_steps")}
     result = RESULTS.promote(sol.result)
     return Solution(
-        t=sol.ts[0], q=q, v=v, energy=energy, work=work, energy_drift=drift, constraint_drift=cdrift,
-        reactions=reactions, stats=stats, result=result, t_final=sol.ts[1][-1], q_final=yf[0][-1], v_final=yf[1][-1], layout=layout,
+        t=ts, q=q, v=v, energy=energy, work=work, energy_drift=drift, constraint_drift=cdrift,
+        reactions=reactions, stats=stats, result=result, t_final=tf[-1], q_final=yf[0][-1], v_final=yf[1][-1], layout=layout,
     )
 
 
