@@ -224,6 +224,10 @@ def test_control_signal_and_feedback_module_gradients():
     h = 1e-5
     fd = [(loss(g0.at[i].add(h)) - loss(g0.at[i].add(-h))) / (2 * h) for i in range(2)]
     np.testing.assert_allclose(grad, fd, rtol=1e-5)
+
+
+@pytest.mark.slow
+def test_adjoints_agree():
     for adj in ("backsolve", "forward"):
         def loss_adj(x0, adj=adj):
             return jb.simulate(pendulum(), x0, jnp.array([0.0]), 1.0, n_save=2, rtol=1e-11, atol=1e-11, adjoint=adj).q[-1, 0]
