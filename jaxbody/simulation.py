@@ -225,6 +225,15 @@ class Solution(eqx.Module):
     q_final: Float[Array, " nq"]
     v_final: Float[Array, " nv"]
     layout: tuple = eqx.field(static=True, default=())
+    interpolation: Any = None
+
+    def evaluate(self, t: ArrayLike) -> tuple[Float[Array, " nq"], Float[Array, " nv"]]:
+        """``(q, v)`` at any time ``t`` in ``[t0, t_final]`` from the solver's dense output
+        (needs ``simulate(..., dense=True)``)."""
+        if self.interpolation is None:
+            raise ValueError("Solution.evaluate needs simulate(..., dense=True)")
+        y = self.interpolation.evaluate(t)
+        return y[0], y[1]
 
     @property
     def success(self) -> jax.Array:
@@ -546,6 +555,7 @@ def simulate(
     max_steps: int | None = 100_000,
     adjoint: diffrax.AbstractAdjoint | str | None = None,
     event: Event | Callable | None = None,
+    dense: bool = False,
     throw: bool = True,
     progress: bool = False,
     track_work: bool = True,
@@ -568,13 +578,15 @@ def simulate(
         dt0: step of fixed-step solvers; first trial step of adaptive ones (``None``: automatic).
         controller: a diffrax step-size controller replacing the default PID / constant step.
         saveat: times ``(n_save,)`` or a ``diffrax.SaveAt`` (``ts``, ``t0``, ``t1``, ``steps``;
-            its ``dense=True`` is not supported here — pass enough ``ts``).
+            for output at any time use ``dense=True``).
         n_save: ``n_save`` evenly spaced times from ``t0`` to ``t1``; default 101.
         max_steps: step budget; running out is a failed solve (``max_steps_reached``).
         adjoint: ``None``/``"checkpoint"`` (recursive checkpointing, the default),
             ``"backsolve"``, ``"forward"`` (forward-mode, for ``jax.jacfwd``) or a diffrax adjoint.
         event: a :class:`jaxbody.Event` or a callable ``g(t, q, v)``: the solve stops where
             ``g`` crosses zero, located by Newton's method to rounding.
+        dense: keep the solver's dense output: :meth:`Solution.evaluate` gives ``(q, v)`` at any
+            time (memory grows with the number of steps).
         throw: raise on failure (see the module docstring) or return result codes.
         progress: show diffrax's ``TqdmProgressMeter`` (text meter without tqdm).
         track_work: integrate the work of the non-conservative effects (energy balance).
@@ -626,7 +638,7 @@ def simulate(
             raise ValueError(f"simulate: saveat must be 1-D times, got shape {ts.shape}")
         saveat = diffrax.SaveAt(ts=ts)
     if saveat.dense or saveat.subs is not None and not isinstance(saveat.subs, diffrax.SubSaveAt):
-        raise ValueError("simulate: saveat with dense=True or nested subs is not supported; save at times")
+        raise ValueError("simulate: pass dense=True instead of SaveAt(dense=True); nested subs are not supported")
     adjoint = _adjoint(adjoint)
 
     if _is_concrete(scene, q0, v0):
@@ -647,7 +659,7 @@ def simulate(
     y0 = (q0, v0) if n_work == 0 else (q0, v0, jnp.zeros((n_work,), q0.dtype))
     meter = _progress_meter(progress)
     sol = _solve(scene, y0, t0, t1, valid, solver_obj, controller, dt0, saveat, max_steps, adjoint, meter,
-                 _make_event(event, q0.dtype), _layout(scene))
+                 _make_event(event, q0.dtype), _layout(scene), dense)
     if valid is not None:
         sol = eqx.tree_at(lambda s: s.result, sol, RESULTS.where(valid, sol.result, RESULTS.invalid_input))
     if throw:
@@ -699,7 +711,7 @@ def _reason(sol):
 
 
 @eqx.filter_jit
-def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps, adjoint, meter, event, layout):
+def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps, adjoint, meter, event, layout, dense):
     main = saveat.subs if saveat.subs is not None else diffrax.SubSaveAt(ts=saveat.ts, t0=saveat.t0, t1=saveat.t1, steps=saveat.steps)
     # the end state is saved separately, except with backsolve (which takes no SaveAt(subs=...)):
     # there the last saved point stands for it
@@ -712,7 +724,7 @@ def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps,
         dt0,
         y0,
         args=(scene, valid),
-        saveat=diffrax.SaveAt(subs=main) if single else diffrax.SaveAt(subs=[main, diffrax.SubSaveAt(t1=True)]),
+        saveat=diffrax.SaveAt(subs=main, dense=dense) if single else diffrax.SaveAt(subs=[main, diffrax.SubSaveAt(t1=True)], dense=dense),
         stepsize_controller=controller,
         max_steps=max_steps,
         adjoint=adjoint,
@@ -748,6 +760,7 @@ def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps,
     return Solution(
         t=ts, q=q, v=v, energy=energy, work=work, energy_drift=drift, constraint_drift=cdrift,
         reactions=reactions, stats=stats, result=result, t_final=tf[-1], q_final=yf[0][-1], v_final=yf[1][-1], layout=layout,
+        interpolation=sol.interpolation if dense else None,
     )
 
 

@@ -56,6 +56,16 @@ def test_presets_reach_the_exact_solution(solver, dt0, tol):
     np.testing.assert_allclose(sol.q[:, 0], np.cos(2.0 * np.asarray(sol.t)), atol=tol)
 
 
+def test_dense_output():
+    sol = jb.simulate(Osc(jnp.asarray(4.0)), jnp.array([1.0]), jnp.array([0.0]), 2.0, n_save=2, dense=True,
+                      rtol=1e-10, atol=1e-10)
+    for t in (0.1234, 1.5):
+        q, v = sol.evaluate(t)
+        np.testing.assert_allclose([q[0], v[0]], [np.cos(2 * t), -2 * np.sin(2 * t)], atol=1e-8)
+    with pytest.raises(ValueError, match=r"needs simulate\(..., dense=True\)"):
+        jb.simulate(Osc(jnp.asarray(4.0)), jnp.array([1.0]), jnp.array([0.0]), 2.0).evaluate(0.5)
+
+
 def test_any_diffrax_solver_and_controller():
     sol = jb.simulate(Osc(jnp.asarray(4.0)), jnp.array([1.0]), jnp.array([0.0]), 1.0, solver=diffrax.Bosh3(),
                       controller=diffrax.PIDController(rtol=1e-10, atol=1e-10, pcoeff=0.3, icoeff=0.4))
