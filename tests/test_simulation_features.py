@@ -300,3 +300,54 @@ def test_sharded_batch_equals_unsharded_on_four_devices():
                JAX_PLATFORMS="cpu")
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)
     assert "SHARDED_OK" in out.stdout, out.stderr[-3000:]
+
+
+class CountingLoad(jb.effects.Effect):
+    """A zero force that counts how often it is traced (Python side effect at trace time)."""
+
+    name = "counting"
+    conservative = True
+
+    def generalized_force(self, ctx):
+        TRACES.append(1)
+        return jnp.zeros_like(ctx.v)
+
+
+TRACES = []
+
+
+def test_batch_compiles_once_for_all_chunks_and_calls():
+    sc = jb.scene(pendulum(), effects=(CountingLoad(),))
+    q0s, v0s = jnp.linspace(-1.0, 1.0, 6)[:, None], jnp.zeros((6, 1))
+    TRACES.clear()
+    jb.simulate_batch(sc, q0s, v0s, 1.0, n_save=3, chunk_size=2)  # three chunks
+    per_compile = len(TRACES)
+    assert per_compile > 0
+    jb.simulate_batch(sc, q0s + 0.1, v0s, 1.0, n_save=3, chunk_size=2)
+    assert len(TRACES) == per_compile  # no new trace: one compilation served every chunk and call
+
+
+def test_parameter_pairs_get_gradients_and_errors_are_pinned():
+    def law(t, q, v, p):
+        return -p["k"] * q - p["c"] * v
+
+    def loss(p):
+        sc = jb.scene(pendulum(), actuation=(law, p))
+        return jb.simulate(sc, jnp.array([0.4]), jnp.array([0.0]), 0.5, n_save=2, rtol=1e-11, atol=1e-11).q[-1, 0]
+
+    p = {"k": jnp.asarray(2.0), "c": jnp.asarray(0.3)}
+    g = jax.grad(loss)(p)
+    h = 1e-5
+    fd = (loss({**p, "k": p["k"] + h}) - loss({**p, "k": p["k"] - h})) / (2 * h)
+    np.testing.assert_allclose(g["k"], fd, rtol=1e-5)
+    m = pendulum()
+    with pytest.raises(ValueError, match=r"phases: need n scenes and n - 1 events, got 2 scenes and 0 events"):
+        jb.Phases(scenes=(jb.scene(m), jb.scene(m)), events=())
+    with pytest.raises(ValueError, match=r"scene: gravity must be a bool or a \(3,\) vector"):
+        jb.scene(m, gravity=jnp.ones(2))
+    with pytest.raises(ValueError, match="scene: actuation must be callable"):
+        jb.scene(m, actuation=(1.0, 2.0))
+    with pytest.raises(ValueError, match="fixed-step solver 'heun' needs dt0"):
+        jb.simulate(m, jnp.array([0.1]), jnp.array([0.0]), 1.0, solver="heun")
+    with pytest.raises(TypeError, match="str lacks nq, nv, qdot, acceleration"):
+        jb.simulate("pendulum", jnp.array([0.1]), jnp.array([0.0]), 1.0)
