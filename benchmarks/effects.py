@@ -97,6 +97,7 @@ def main():
     ap.add_argument("--batch", type=int, default=1024)
     ap.add_argument("--min-time", type=float, default=0.5)
     ap.add_argument("--tag", default="", help="suffix of the result files (effects_<tag>.*)")
+    ap.add_argument("--models-dir", type=pathlib.Path, default=_common.REPO.parent / "shared" / "models")
     args = ap.parse_args()
     st = _common.stamp()
 
@@ -109,8 +110,7 @@ def main():
     import jaxbody as jb
 
     rows = []
-    panda = jb.from_mjcf(str(pathlib.Path("/work/shared/models/panda.xml")) if pathlib.Path("/work/shared/models/panda.xml").exists()
-                         else str(_common.REPO / "models" / "panda.xml"))
+    panda = jb.from_mjcf(str(args.models_dir / "panda.xml"))
     chain = chain7(jb, np)
     cases = [("panda", "spatial", panda, False), ("chain7", "planar", chain, None), ("chain7", "spatial", chain, False)]
     for name, path, model, planar in cases:
@@ -141,6 +141,8 @@ def main():
         "",
         "One evaluation of `scene.acceleration(t, q, v)`; flops from XLA `cost_analysis` of the compiled program.",
         "The planar path of `chain7` runs the absolute-angle equations; the spatial rows are the same model with `planar=False`.",
+        "Equation counts and flops are exact; times on a shared machine are noisy (see the load average above):",
+        "compare them only within one run, and prefer the flops column for the cost of an effect.",
         "",
         table,
         "",

@@ -22,7 +22,7 @@ which state and why (``throw=True``) or returns the trajectory up to the failure
 import json
 import math
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, Protocol
 
 import diffrax
 import equinox as eqx
@@ -47,8 +47,6 @@ __all__ = [
     "simulate_batch",
     "load_solution",
 ]
-
-from typing import Protocol
 
 
 class DynamicalSystem(Protocol):

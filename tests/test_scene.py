@@ -5,8 +5,6 @@ References: the public joint-space functions of the spatial engine (``jb.forward
 spec's equations of the paper examples written out here and integrated by SciPy's DOP853.
 """
 
-import copy
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -18,7 +16,6 @@ from scipy.integrate import solve_ivp
 import jaxbody as jb
 from jaxbody.effects import HolonomicConstraint
 
-MODELS = Path("/work/shared/models")
 pytestmark = pytest.mark.filterwarnings("ignore:from_mjcf")
 
 
@@ -49,8 +46,8 @@ def flops(scene):
 
 
 @pytest.fixture(scope="module")
-def panda():
-    return jb.from_mjcf(str(MODELS / "panda.xml"))
+def panda(models_dir):
+    return jb.from_mjcf(str(models_dir / "panda.xml"))
 
 
 # ----------------------------------------------------------------------------- only what is declared
@@ -336,9 +333,9 @@ def test_example_systems_cart_and_vertical_line_vs_spec():
 
 # ----------------------------------------------------------------------------- MuJoCo RK4
 @pytest.mark.parametrize("name", ["panda", "anymal_c"])
-def test_robot_matches_mujoco_rk4(name):
+def test_robot_matches_mujoco_rk4(name, models_dir):
     D = mujoco.mjtDisableBit
-    mj = mujoco.MjModel.from_xml_path(str(MODELS / f"{name}.xml"))
+    mj = mujoco.MjModel.from_xml_path(str(models_dir / f"{name}.xml"))
     mj.opt.disableflags |= (D.mjDSBL_CONSTRAINT | D.mjDSBL_CONTACT | D.mjDSBL_EQUALITY | D.mjDSBL_LIMIT
                             | D.mjDSBL_FRICTIONLOSS | D.mjDSBL_ACTUATION)
     mj.opt.integrator = mujoco.mjtIntegrator.mjINT_RK4
@@ -353,7 +350,7 @@ def test_robot_matches_mujoco_rk4(name):
     q0, v0 = d.qpos.copy(), d.qvel.copy()
     for _ in range(n):
         mujoco.mj_step(mj, d)
-    model = jb.from_mjcf(str(MODELS / f"{name}.xml"))
+    model = jb.from_mjcf(str(models_dir / f"{name}.xml"))
     sol = jb.simulate(model, q0, v0, n * dt, solver="rk4", dt0=dt, n_save=2)
     np.testing.assert_allclose(sol.q[-1], d.qpos, atol=1e-9)
     np.testing.assert_allclose(sol.v[-1], d.qvel, atol=1e-8)
