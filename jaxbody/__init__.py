@@ -59,8 +59,18 @@ from .batching import vmap_chunked as vmap_chunked
 from . import planar as planar
 from . import examples as examples
 from . import design as design
-# --- simulation (simulate.py) ---
-from .simulate import DynamicalSystem as DynamicalSystem, Solution as Solution, simulate as simulate
+# --- scenes and simulation (scene.py, effects/, simulation.py) ---
+from . import effects as effects
+from .scene import Scene as Scene, scene as scene, Phases as Phases, Event as Event
+from .simulation import (
+    DynamicalSystem as DynamicalSystem,
+    RESULTS as RESULTS,
+    SimulationError as SimulationError,
+    Solution as Solution,
+    load_solution as load_solution,
+    simulate as simulate,
+    simulate_batch as simulate_batch,
+)
 # --- import (io/mujoco.py) ---
 from .io.mujoco import (
     from_mjcf as from_mjcf,

@@ -1,0 +1,155 @@
+"""What does each declared effect cost in a scene's vector field, and what does the planar path save?
+
+For the menagerie panda (spatial path) and a 7-link planar chain (planar absolute-angle path
+next to the spatial path of the same model), for each effect set from "everything" down to
+"nothing", this measures one evaluation of the scene's vector field ``(t, q, v) -> a``:
+
+* jaxpr equation count and XLA ``cost_analysis`` flops of the compiled program;
+* compile time (lower + XLA compile) and warm time per call (median, ``block_until_ready``);
+* warm time per state of a ``vmap`` over ``--batch`` states (throughput regime).
+
+Results go to ``benchmarks/results/effects.{md,json}`` stamped with commit, machine, versions,
+date and command (STYLE rule 15).
+
+Usage::
+
+    XLA_FLAGS=--xla_cpu_use_fusion_emitters=false .venv/bin/python benchmarks/effects.py
+    .venv/bin/python benchmarks/effects.py --batch 256 --min-time 0.2 --tag quick
+"""
+
+import argparse
+import json
+import pathlib
+import sys
+import time
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+import _common  # noqa: E402
+
+
+def effect_sets(model, jnp):
+    nv, nb = model.nv, model.n_body
+
+    def tau(t, q, v):
+        return -2.0 * q[:nv] - 0.5 * v
+
+    def wrench(t, q, v):
+        return jnp.zeros((nb, 6)).at[-1, 2].set(3.0 * jnp.sin(t))
+
+    stiff = jnp.full((model.n_joint,), 4.0)
+    damp = jnp.full((nv,), 0.3)
+    full = dict(gravity=True, springs=stiff, dampers=damp, actuation=tau, loads=wrench)
+    return [
+        ("gravity+springs+dampers+actuation+loads", full),
+        ("gravity+springs+dampers+actuation", {**full, "loads": None}),
+        ("gravity+springs+dampers", {**full, "loads": None, "actuation": None}),
+        ("gravity+springs", {**full, "loads": None, "actuation": None, "dampers": False}),
+        ("gravity", {**full, "loads": None, "actuation": None, "dampers": False, "springs": False}),
+        ("(none)", {**full, "loads": None, "actuation": None, "dampers": False, "springs": False, "gravity": False}),
+    ]
+
+
+def chain7(jb, np):
+    rng = np.random.default_rng(0)
+    b = jb.ModelBuilder(gravity=np.array([0.0, 0.0, -9.81]))
+    for i in range(7):
+        b.add_body(f"link{i}", parent=f"link{i - 1}" if i else None,
+                   pos=np.array([0.0, 0.0, -0.4]) if i else np.zeros(3),
+                   mass=1.0 + 0.3 * rng.random(), com=np.array([0.02, 0.01, -0.2]),
+                   inertia=np.array([0.02, 0.015 + 0.01 * rng.random(), 0.01]),
+                   joints=[jb.Hinge(axis=np.array([0.0, -1.0, 0.0]))])
+    return b.build()
+
+
+def measure(jax, jnp, np, scene, batch, min_time):
+    rng = np.random.default_rng(1)
+    q = jnp.asarray(rng.uniform(-0.5, 0.5, scene.nq))
+    if scene.has_quaternions:
+        q = q.at[:4].set(jnp.array([1.0, 0, 0, 0]))
+    v = jnp.asarray(rng.uniform(-0.5, 0.5, scene.nv))
+    t = jnp.asarray(0.1)
+
+    def f(t, q, v):
+        return scene.acceleration(t, q, v)
+
+    eqns = len(jax.make_jaxpr(f)(t, q, v).eqns)
+    t0 = time.perf_counter()
+    compiled = jax.jit(f).lower(t, q, v).compile()
+    compile_s = time.perf_counter() - t0
+    cost = compiled.cost_analysis()
+    cost = cost[0] if isinstance(cost, list) else cost
+    one = _common.time_per_call(lambda: compiled(t, q, v).block_until_ready(), min_time=min_time)
+    qs = jnp.broadcast_to(q, (batch, scene.nq))
+    vs = jnp.broadcast_to(v, (batch, scene.nv)) * jnp.linspace(0.5, 1.5, batch)[:, None]
+    batched = jax.jit(jax.vmap(f, in_axes=(None, 0, 0))).lower(t, qs, vs).compile()
+    many = _common.time_per_call(lambda: batched(t, qs, vs).block_until_ready(), min_time=min_time)
+    return {
+        "jaxpr_eqns": eqns,
+        "flops": float(cost.get("flops", float("nan"))),
+        "compile_s": compile_s,
+        "call_us": one["median_s"] * 1e6,
+        "batched_us_per_state": many["median_s"] / batch * 1e6,
+    }
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--batch", type=int, default=1024)
+    ap.add_argument("--min-time", type=float, default=0.5)
+    ap.add_argument("--tag", default="", help="suffix of the result files (effects_<tag>.*)")
+    ap.add_argument("--models-dir", type=pathlib.Path, default=_common.REPO.parent / "shared" / "models")
+    args = ap.parse_args()
+    st = _common.stamp()
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+    import numpy as np
+
+    import jaxbody as jb
+
+    rows = []
+    panda = jb.from_mjcf(str(args.models_dir / "panda.xml"))
+    chain = chain7(jb, np)
+    cases = [("panda", "spatial", panda, False), ("chain7", "planar", chain, None), ("chain7", "spatial", chain, False)]
+    for name, path, model, planar in cases:
+        for label, kw in effect_sets(model, jnp):
+            if path == "planar" and kw.get("loads") is not None:
+                continue  # loads take the spatial path
+            sc = jb.scene(model, planar=planar, **kw)
+            assert sc.path == path, (name, label, sc.path)
+            r = measure(jax, jnp, np, sc, args.batch, args.min_time)
+            r.update(model=name, path=path, effects=label)
+            rows.append(r)
+            print(json.dumps(r), flush=True)
+    st["load_average_end"] = _common.load_average()
+    st["device"] = str(jax.devices()[0])
+    stem = "effects" + (f"_{args.tag}" if args.tag else "")
+    _common.RESULTS.mkdir(parents=True, exist_ok=True)
+    (_common.RESULTS / f"{stem}.json").write_text(json.dumps({"stamp": st, "batch": args.batch, "rows": rows}, indent=1))
+    headers = ["model", "path", "effects", "jaxpr eqns", "flops", "compile (s)", "one call (µs)", f"vmap {args.batch} (µs/state)"]
+    table = _common.markdown_table(headers, [
+        [r["model"], r["path"], r["effects"], r["jaxpr_eqns"], f"{r['flops']:.0f}", f"{r['compile_s']:.2f}",
+         f"{r['call_us']:.1f}", f"{r['batched_us_per_state']:.2f}"] for r in rows
+    ])
+    md = [
+        "# Cost of each declared effect in a scene's vector field",
+        "",
+        _common.stamp_markdown(st),
+        f"- device: {st['device']}",
+        "",
+        "One evaluation of `scene.acceleration(t, q, v)`; flops from XLA `cost_analysis` of the compiled program.",
+        "The planar path of `chain7` runs the absolute-angle equations; the spatial rows are the same model with `planar=False`.",
+        "Equation counts and flops are exact; times on a shared machine are noisy (see the load average above):",
+        "compare them only within one run, and prefer the flops column for the cost of an effect.",
+        "",
+        table,
+        "",
+    ]
+    (_common.RESULTS / f"{stem}.md").write_text("\n".join(md))
+    print(f"wrote {_common.RESULTS / (stem + '.md')}")
+
+
+if __name__ == "__main__":
+    main()

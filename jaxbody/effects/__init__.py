@@ -1,0 +1,13 @@
+"""Scene effects: small modules whose sum is a scene's vector field (see :mod:`jaxbody.scene`)."""
+
+from ._base import Effect as Effect, EffectContext as EffectContext
+from .constraints import Constraint as Constraint, HolonomicConstraint as HolonomicConstraint
+from .forces import (
+    Actuation as Actuation,
+    BodyLoads as BodyLoads,
+    ControlSignal as ControlSignal,
+    Gravity as Gravity,
+    JointDampers as JointDampers,
+    JointSprings as JointSprings,
+    SupportMotion as SupportMotion,
+)

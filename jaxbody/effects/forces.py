@@ -1,0 +1,222 @@
+"""Ready effects: gravity, joint springs and dampers, actuation, body loads, moving support.
+
+Each is a small :class:`~jaxbody.effects.Effect`. The path-dependent kinematics (spatial tree
+or planar absolute angles) is the scene's business: an effect asks the scene for the
+generalized force of a uniform field or of body wrenches, so the same effect serves both
+paths.
+"""
+
+from collections.abc import Callable
+from typing import Any, ClassVar
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .._types import Array, Float
+from ._base import Effect, EffectContext
+
+__all__ = [
+    "Gravity",
+    "JointSprings",
+    "JointDampers",
+    "Actuation",
+    "ControlSignal",
+    "BodyLoads",
+    "SupportMotion",
+]
+
+
+class Gravity(Effect):
+    """A uniform gravity field ``g`` (world frame, m/s²) acting at every centre of mass.
+
+    Generalized force ``τ_d = Σ_{k moved by d} m_k g·(∂C_k/∂q_d)``; potential
+    ``V = −Σ_k m_k g·C_k``.
+    """
+
+    vector: Float[Array, " dim"]
+    name: ClassVar[str] = "gravity"
+    conservative: ClassVar[bool] = True
+
+    def generalized_force(self, ctx: EffectContext):
+        return ctx.scene._uniform_field_force(ctx, self.vector)
+
+    def potential_energy(self, ctx: EffectContext):
+        return ctx.scene._uniform_field_potential(ctx, self.vector)
+
+
+class JointSprings(Effect):
+    """Joint springs ``τ = −k (q ⊖ q_ref)`` (quaternion joints: rotation-vector difference).
+
+    Attributes:
+        stiffness: per joint ``(n_joint,)``.
+        reference: spring reference configuration ``(nq,)`` (the model's ``qpos_spring``).
+    """
+
+    stiffness: Float[Array, " n_joint"]
+    reference: Float[Array, " nq"]
+    name: ClassVar[str] = "springs"
+    conservative: ClassVar[bool] = True
+
+    def _terms(self, ctx):
+        from ..kernels import _spring_terms  # per-kind spring displacements, shared with the core
+
+        model = eqx.tree_at(
+            lambda m: (m.joint_stiffness, m.qpos_spring), ctx.scene.model, (self.stiffness, self.reference)
+        )
+        return _spring_terms(model, ctx.q)
+
+    def generalized_force(self, ctx: EffectContext):
+        f = jnp.zeros_like(ctx.v)
+        for dofs, disp, k in self._terms(ctx):
+            f = f.at[dofs].add(-k[:, None] * disp)
+        return f
+
+    def potential_energy(self, ctx: EffectContext):
+        e = jnp.zeros((), ctx.q.dtype)
+        for _, disp, k in self._terms(ctx):
+            e = e + 0.5 * jnp.sum(k * jnp.sum(disp * disp, axis=-1))
+        return e
+
+    def check(self, scene):
+        if self.stiffness.shape != (scene.model.n_joint,):
+            raise ValueError(f"springs: stiffness has shape {self.stiffness.shape}, expected ({scene.model.n_joint},)")
+        if self.reference.shape != (scene.nq,):
+            raise ValueError(f"springs: reference has shape {self.reference.shape}, expected ({scene.nq},)")
+
+
+class JointDampers(Effect):
+    """Viscous joint damping ``τ = −c ⊙ v``; its (negative) work is the dissipation."""
+
+    damping: Float[Array, " nv"]
+    name: ClassVar[str] = "dampers"
+
+    def generalized_force(self, ctx: EffectContext):
+        return -self.damping * ctx.v
+
+    def check(self, scene):
+        if self.damping.shape != (scene.nv,):
+            raise ValueError(f"dampers: damping has shape {self.damping.shape}, expected ({scene.nv},)")
+
+
+class ControlSignal(eqx.Module):
+    """A control signal sampled on a time grid, interpolated by diffrax (a ``tau`` law).
+
+    ``ControlSignal(ts, values)(t, q, v)`` returns the signal at ``t``: piecewise linear
+    (``method="linear"``) or a C¹ cubic Hermite spline through the samples (``"cubic"``).
+    Outside ``[ts[0], ts[-1]]`` the end segments are extrapolated.
+
+    Attributes:
+        interpolation: a diffrax interpolation of ``values`` ``(n_time, nv)`` over ``ts``.
+    """
+
+    interpolation: Any
+
+    def __init__(self, ts, values, method: str = "linear"):
+        ts = jnp.asarray(ts)
+        values = jnp.asarray(values)
+        if ts.ndim != 1 or values.ndim != 2 or values.shape[0] != ts.shape[0]:
+            raise ValueError(
+                f"control signal: ts must be (n_time,) and values (n_time, nv), got {ts.shape} and {values.shape}"
+            )
+        if method == "linear":
+            self.interpolation = diffrax.LinearInterpolation(ts=ts, ys=values)
+        elif method == "cubic":
+            coeffs = diffrax.backward_hermite_coefficients(ts, values)
+            self.interpolation = diffrax.CubicInterpolation(ts, coeffs)
+        else:
+            raise ValueError(f"control signal: method must be 'linear' or 'cubic', got {method!r}")
+
+    def __call__(self, t, q, v):
+        return self.interpolation.evaluate(t)
+
+
+class Actuation(Effect):
+    """Generalized forces ``τ(t, q, v)`` (or ``τ(t, q, v, params)``) in the layout of ``v``.
+
+    Attributes:
+        law: a callable. Make it an ``equinox.Module`` (a feedback law, a
+            :class:`ControlSignal`) so ``grad`` reaches its array fields; a plain function is
+            a static part of the compiled solve.
+        params: optional pytree passed as the fourth argument (``grad`` reaches it).
+    """
+
+    law: Callable
+    params: Any = None
+    name: ClassVar[str] = "actuation"
+
+    def __call__(self, t, q, v):
+        if self.params is None:
+            return self.law(t, q, v)
+        return self.law(t, q, v, self.params)
+
+    def generalized_force(self, ctx: EffectContext):
+        return jnp.asarray(self(ctx.t, ctx.q, ctx.v), ctx.v.dtype)
+
+    def check(self, scene):
+        dt = jnp.result_type(float)
+        s = jax.ShapeDtypeStruct
+        try:
+            out = jax.eval_shape(self.__call__, s((), dt), s((scene.nq,), dt), s((scene.nv,), dt))
+        except Exception as err:  # the law fails on the state shapes: say so first
+            raise ValueError(f"actuation: tau(t, q, v) fails for q ({scene.nq},), v ({scene.nv},): {err}") from err
+        if getattr(out, "shape", None) != (scene.nv,):
+            raise ValueError(
+                f"actuation: tau(t, q, v) returned shape {getattr(out, 'shape', type(out))}, expected ({scene.nv},)"
+            )
+
+
+class BodyLoads(Effect):
+    """External loads on bodies, MuJoCo ``xfrc_applied`` layout: ``wrench(t, q, v) -> (n_body, 6)``,
+    world force and world torque applied at each body's centre of mass.
+
+    Spatial models only (a scene with loads takes the spatial path).
+    """
+
+    wrench: Callable
+    name: ClassVar[str] = "loads"
+
+    def generalized_force(self, ctx: EffectContext):
+        w = jnp.asarray(self.wrench(ctx.t, ctx.q, ctx.v), ctx.v.dtype)
+        return ctx.scene._body_wrench_force(ctx, w[:, :3], w[:, 3:])
+
+    def check(self, scene):
+        dt = jnp.result_type(float)
+        s = jax.ShapeDtypeStruct
+        out = jax.eval_shape(self.wrench, s((), dt), s((scene.nq,), dt), s((scene.nv,), dt))
+        want = (scene.model.n_body, 6)
+        if getattr(out, "shape", None) != want:
+            raise ValueError(f"loads: wrench(t, q, v) returned shape {getattr(out, 'shape', type(out))}, expected {want}")
+
+
+class SupportMotion(Effect):
+    """Prescribed translation ``s(t)`` of the support (the ground the roots are hinged to).
+
+    The state ``(q, v)`` is relative to the moving support; in that translating frame every
+    body feels the inertial force ``−m_k s̈(t)`` at its centre of mass (a uniform, time-varying
+    field). Its work is integrated, so the energy (relative to the support) balances.
+
+    Attributes:
+        position: ``s(t) -> (3,)`` world-frame support displacement (a pure function of ``t``;
+            an ``equinox.Module`` for differentiable parameters). ``s̈`` comes from forward-mode
+            autodiff.
+    """
+
+    position: Callable
+    name: ClassVar[str] = "support"
+
+    def acceleration(self, t):
+        def vel(tt):
+            return jax.jvp(self.position, (tt,), (jnp.ones_like(tt),))[1]
+
+        return jax.jvp(vel, (t,), (jnp.ones_like(t),))[1]
+
+    def generalized_force(self, ctx: EffectContext):
+        acc = jnp.asarray(self.acceleration(ctx.t), ctx.v.dtype)
+        return ctx.scene._uniform_field_force(ctx, -acc)
+
+    def check(self, scene):
+        out = jax.eval_shape(self.position, jax.ShapeDtypeStruct((), jnp.result_type(float)))
+        if getattr(out, "shape", None) != (3,):
+            raise ValueError(f"support: position(t) returned shape {getattr(out, 'shape', type(out))}, expected (3,)")

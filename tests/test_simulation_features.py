@@ -1,0 +1,353 @@
+"""Simulation features: presets, manifold, validation, result codes in batches, events, phases,
+energy balance, files, adjoints, sharded batches (closed forms, finite differences, loops)."""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxbody as jb
+
+
+def pendulum(damping=0.0, stiffness=0.0, g=9.81):
+    b = jb.ModelBuilder(gravity=np.array([0.0, 0.0, -g]))
+    b.add_body("link", mass=1.3, com=np.array([0.0, 0.0, -0.4]), inertia=np.array([0.03, 0.02, 0.01]),
+               joints=[jb.Hinge(axis=np.array([0.0, -1.0, 0.0]), damping=damping, stiffness=stiffness)])
+    return b.build()
+
+
+def top():
+    b = jb.ModelBuilder(gravity=np.array([0.0, 0.0, -9.81]))
+    b.add_body("top", mass=2.0, com=np.array([0.0, 0.0, 0.3]), inertia=np.array([0.05, 0.04, 0.02]), joints=[jb.Ball()])
+    return b.build()
+
+
+class Osc(eqx.Module):
+    k: jax.Array
+    nq: int = eqx.field(static=True, default=1)
+    nv: int = eqx.field(static=True, default=1)
+
+    def qdot(self, q, v):
+        return v
+
+    def acceleration(self, t, q, v, tau):
+        f = -self.k * q
+        return f if tau is None else f + tau
+
+    def total_energy(self, q, v):
+        return 0.5 * jnp.sum(v * v) + 0.5 * self.k * jnp.sum(q * q)
+
+
+@pytest.mark.parametrize(
+    "solver, dt0, tol",
+    [("euler", 1e-4, 5e-3), ("semi_implicit_euler", 1e-4, 5e-3), ("heun", 1e-3, 1e-5), ("rk4", 1e-2, 1e-7),
+     ("tsit5", None, 1e-7), ("dopri5", None, 1e-7), ("dopri8", None, 1e-7), ("kvaerno5", None, 1e-6)],
+)
+def test_presets_reach_the_exact_solution(solver, dt0, tol):
+    sol = jb.simulate(Osc(jnp.asarray(4.0)), jnp.array([1.0]), jnp.array([0.0]), 1.0, solver=solver, dt0=dt0,
+                      n_save=11, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(sol.q[:, 0], np.cos(2.0 * np.asarray(sol.t)), atol=tol)
+
+
+def test_dense_output():
+    sol = jb.simulate(Osc(jnp.asarray(4.0)), jnp.array([1.0]), jnp.array([0.0]), 2.0, n_save=2, dense=True,
+                      rtol=1e-10, atol=1e-10)
+    for t in (0.1234, 1.5):
+        q, v = sol.evaluate(t)
+        np.testing.assert_allclose([q[0], v[0]], [np.cos(2 * t), -2 * np.sin(2 * t)], atol=1e-8)
+    with pytest.raises(ValueError, match=r"needs simulate\(..., dense=True\)"):
+        jb.simulate(Osc(jnp.asarray(4.0)), jnp.array([1.0]), jnp.array([0.0]), 2.0).evaluate(0.5)
+
+
+def test_any_diffrax_solver_and_controller():
+    sol = jb.simulate(Osc(jnp.asarray(4.0)), jnp.array([1.0]), jnp.array([0.0]), 1.0, solver=diffrax.Bosh3(),
+                      controller=diffrax.PIDController(rtol=1e-10, atol=1e-10, pcoeff=0.3, icoeff=0.4))
+    np.testing.assert_allclose(sol.q[:, 0], np.cos(2.0 * np.asarray(sol.t)), atol=1e-8)
+
+
+def test_quaternion_stays_on_unit_sphere_over_1e4_steps():
+    sol = jb.simulate(top(), jnp.array([np.cos(0.2), np.sin(0.2), 0.0, 0.0]), jnp.array([0.1, 0.3, 12.0]), 1.0,
+                      solver="rk4", dt0=1e-4, saveat=diffrax.SaveAt(steps=True), max_steps=10_000)
+    assert int(sol.stats["num_steps"]) == 10_000
+    norms = np.linalg.norm(np.asarray(sol.q), axis=-1)
+    np.testing.assert_allclose(norms, 1.0, rtol=0, atol=1e-12)
+    assert abs(np.linalg.norm(np.asarray(sol.q_final)) - 1.0) < 1e-12
+    assert float(sol.energy_drift) < 1e-9
+
+
+def test_validation_names_the_argument():
+    m = pendulum()
+    q0, v0 = jnp.array([0.1]), jnp.array([0.0])
+    with pytest.raises(ValueError, match=r"t1 \(-1.0\) must be after t0 \(0.0\)"):
+        jb.simulate(m, q0, v0, -1.0)
+    with pytest.raises(ValueError, match="rtol must be a positive finite number"):
+        jb.simulate(m, q0, v0, 1.0, rtol=0.0)
+    with pytest.raises(ValueError, match="atol must be a positive finite number"):
+        jb.simulate(m, q0, v0, 1.0, atol=float("nan"))
+    with pytest.raises(ValueError, match="dt0 must be a positive finite number"):
+        jb.simulate(m, q0, v0, 1.0, solver="rk4", dt0=-0.1)
+    with pytest.raises(ValueError, match="max_steps must be a positive finite number"):
+        jb.simulate(m, q0, v0, 1.0, max_steps=0)
+    with pytest.raises(ValueError, match=r"actuation: tau\(t, q, v\) returned shape \(2,\), expected \(1,\)"):
+        jb.simulate(m, q0, v0, 1.0, tau=lambda t, q, v: jnp.zeros(2))
+    with pytest.raises(ValueError, match=r"simulate: q0 contains NaN or inf at indices \[0\]"):
+        jb.simulate(m, jnp.array([jnp.nan]), v0, 1.0)
+    bad = eqx.tree_at(lambda mm: mm.body_mass, m, jnp.array([-1.0]))
+    with pytest.raises(ValueError, match="body 'link' has negative mass -1.0"):
+        jb.simulate(bad, q0, v0, 1.0)
+    nanp = eqx.tree_at(lambda mm: mm.dof_damping, pendulum(damping=0.1), jnp.array([jnp.nan]))
+    with pytest.raises(ValueError, match=r"parameter .*damping.* contains NaN or inf"):
+        jb.simulate(nanp, q0, v0, 1.0)
+    with pytest.raises(ValueError, match="unknown solver 'rk45'"):
+        jb.simulate(m, q0, v0, 1.0, solver="rk45")
+    with pytest.raises(ValueError, match="adjoint must be"):
+        jb.simulate(m, q0, v0, 1.0, adjoint="magic")
+
+
+def test_nan_member_among_three_keeps_the_others():
+    m = pendulum(damping=0.1)
+    v0s = jnp.array([[0.5], [jnp.nan], [-0.3]])
+
+    @jax.jit
+    @jax.vmap
+    def run(v0):
+        return jb.simulate(m, jnp.array([0.2]), v0, 1.0, throw=False, n_save=5)
+
+    sol = run(v0s)
+    assert sol.success.tolist() == [True, False, True]
+    assert (sol.result == jb.RESULTS.invalid_input).tolist() == [False, True, False]
+    one = jb.simulate(m, jnp.array([0.2]), jnp.array([-0.3]), 1.0, n_save=5)
+    np.testing.assert_allclose(sol.q[2], one.q, atol=1e-12)
+    with pytest.raises(Exception, match="v0 contains NaN or inf"):
+        jax.block_until_ready(jax.jit(lambda v: jb.simulate(m, jnp.array([0.2]), v, 1.0).q)(jnp.array([jnp.nan])))
+
+
+def test_nan_parameter_member_in_a_batch():
+    scenes = [jb.scene(pendulum(damping=d)) for d in (0.1, 0.1, 0.2)]
+    stacked = jax.tree.map(lambda *xs: jnp.stack(xs), *scenes)
+    assert stacked.effect_names == ("gravity", "dampers")
+    stacked = eqx.tree_at(lambda s: s.effects[1].damping, stacked, stacked.effects[1].damping.at[1].set(jnp.nan))
+    sol = jb.simulate_batch(stacked, jnp.full((3, 1), 0.2), jnp.zeros((3, 1)), 1.0, batched_system=True, n_save=5)
+    assert sol.success.tolist() == [True, False, True]
+    ref = jb.simulate(scenes[2], jnp.array([0.2]), jnp.array([0.0]), 1.0, n_save=5)
+    np.testing.assert_allclose(sol.q[2], ref.q, atol=1e-12)
+
+
+def test_max_steps_exhausted_without_throw_keeps_the_trajectory():
+    m = pendulum(damping=0.1)
+    sol = jb.simulate(m, jnp.array([0.5]), jnp.array([0.0]), 2.0, max_steps=5, throw=False, rtol=1e-10, atol=1e-10)
+    assert not bool(sol.success) and bool(sol.result == jb.RESULTS.max_steps_reached)
+    reached = np.isfinite(np.asarray(sol.q[:, 0]))
+    assert reached[0] and not reached[-1]
+    assert 0.0 < float(sol.t_final) < 2.0 and np.isfinite(np.asarray(sol.q_final)).all()
+    full = jb.simulate(m, jnp.array([0.5]), jnp.array([0.0]), 2.0, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(sol.q[reached], full.q[reached], atol=1e-8)
+    with pytest.raises(jb.SimulationError, match=r"failed at t = .*maximum number of solver steps.*\n.*state at the failure: q = "):
+        jb.simulate(m, jnp.array([0.5]), jnp.array([0.0]), 2.0, max_steps=5)
+
+
+class Fragile(eqx.Module):
+    """x'' = -x, but the right-hand side is NaN off the true orbit (|x| > 1.05)."""
+
+    nq: int = eqx.field(static=True, default=1)
+    nv: int = eqx.field(static=True, default=1)
+
+    def qdot(self, q, v):
+        return v
+
+    def acceleration(self, t, q, v, tau):
+        return jnp.where(jnp.abs(q) > 1.05, jnp.nan, -q)
+
+
+def test_nan_trial_stage_is_a_rejected_step():
+    sol = jb.simulate(Fragile(), jnp.array([0.0]), jnp.array([1.0]), 3.0, dt0=1.5, rtol=1e-8, atol=1e-8)
+    assert bool(sol.success) and int(sol.stats["num_rejected_steps"]) > 0
+    np.testing.assert_allclose(sol.q[:, 0], np.sin(np.asarray(sol.t)), atol=1e-6)
+
+
+def test_energy_balance_closes_with_dampers_springs_and_actuation():
+    m = pendulum(damping=0.3, stiffness=2.0)
+    sc = jb.scene(m, actuation=lambda t, q, v: 0.5 * jnp.sin(3.0 * t)[None])
+    sol = jb.simulate(sc, jnp.array([0.8]), jnp.array([0.0]), 3.0, rtol=1e-11, atol=1e-11)
+    assert set(sol.work) == {"dampers", "actuation"}
+    assert float(sol.dissipation[-1]) > 0.05
+    assert float(sol.energy_drift) < 1e-8
+    # the dissipation is the integral of c v² (trapezoid on a fine save grid)
+    np.testing.assert_allclose(float(sol.dissipation[-1]), 0.3 * np.trapezoid(np.asarray(sol.v[:, 0]) ** 2, np.asarray(sol.t)), rtol=2e-3)
+
+
+def test_terminating_event_located_to_tolerance():
+    # x = cos 2t: first downward zero at π/4
+    ev = jb.Event(lambda t, q, v: q[0], direction=False)
+    sol = jb.simulate(Osc(jnp.asarray(4.0)), jnp.array([1.0]), jnp.array([0.0]), 3.0, event=ev, rtol=1e-10, atol=1e-10)
+    assert bool(sol.event_occurred) and bool(sol.success)
+    assert abs(float(sol.t_final) - np.pi / 4) < 1e-9
+    assert abs(float(sol.q_final[0])) < 1e-9
+    saved = np.isfinite(np.asarray(sol.q[:, 0]))
+    assert np.all(np.asarray(sol.t)[saved] <= np.pi / 4 + 1e-9)
+
+
+def test_phases_switch_at_an_event():
+    m = pendulum()
+    free, damped = jb.scene(m), jb.scene(m, dampers=jnp.array([0.5]))
+    ph = jb.Phases(scenes=(free, damped), events=(jb.Event(lambda t, q, v: q[0], direction=False),))
+    sol = jb.simulate(ph, jnp.array([0.5]), jnp.array([0.0]), 2.0, n_save=41, rtol=1e-11, atol=1e-11)
+    first = jb.simulate(free, jnp.array([0.5]), jnp.array([0.0]), 2.0, event=ph.events[0], rtol=1e-11, atol=1e-11)
+    te = float(first.t_final)
+    second = jb.simulate(damped, first.q_final, first.v_final, 2.0, t0=te, saveat=np.linspace(te, 2.0, 5), rtol=1e-11, atol=1e-11)
+    np.testing.assert_allclose(sol.q[-1], second.q[-1], atol=1e-9)
+    before = np.asarray(sol.t) <= te
+    ref = jb.simulate(free, jnp.array([0.5]), jnp.array([0.0]), 2.0, n_save=41, rtol=1e-11, atol=1e-11)
+    np.testing.assert_allclose(sol.q[before], ref.q[before], atol=1e-9)
+    assert np.all(np.isfinite(np.asarray(sol.q)))
+
+
+def test_control_signal_and_feedback_module_gradients():
+    m = pendulum(g=0.0)  # J θ'' = tau: a control signal integrates twice
+    ts = jnp.linspace(0.0, 1.0, 201)
+    sig = jb.effects.ControlSignal(ts, jnp.sin(3 * ts)[:, None], method="cubic")
+    J = 0.02 + 1.3 * 0.4**2
+    sol = jb.simulate(jb.scene(m, actuation=sig), jnp.array([0.0]), jnp.array([0.0]), 1.0, n_save=11, rtol=1e-11, atol=1e-11)
+    t = np.asarray(sol.t)
+    np.testing.assert_allclose(sol.q[:, 0], (t / 3 - np.sin(3 * t) / 9) / J, atol=1e-6)
+
+    class PD(eqx.Module):
+        kp: jax.Array
+        kd: jax.Array
+
+        def __call__(self, t, q, v):
+            return -self.kp * q - self.kd * v
+
+    def loss(gains):
+        sc = jb.scene(pendulum(), actuation=PD(gains[0], gains[1]))
+        return jb.simulate(sc, jnp.array([0.5]), jnp.array([0.0]), 1.0, n_save=2, rtol=1e-11, atol=1e-11).q[-1, 0]
+
+    g0 = jnp.array([3.0, 0.4])
+    grad = jax.grad(loss)(g0)
+    h = 1e-5
+    fd = [(loss(g0.at[i].add(h)) - loss(g0.at[i].add(-h))) / (2 * h) for i in range(2)]
+    np.testing.assert_allclose(grad, fd, rtol=1e-5)
+
+
+@pytest.mark.slow
+def test_adjoints_agree():
+    for adj in ("backsolve", "forward"):
+        def loss_adj(x0, adj=adj):
+            return jb.simulate(pendulum(), x0, jnp.array([0.0]), 1.0, n_save=2, rtol=1e-11, atol=1e-11, adjoint=adj).q[-1, 0]
+        ref = jax.grad(lambda x0: jb.simulate(pendulum(), x0, jnp.array([0.0]), 1.0, n_save=2, rtol=1e-11, atol=1e-11).q[-1, 0])(jnp.array([0.5]))
+        got = jax.jacfwd(loss_adj)(jnp.array([0.5])) if adj == "forward" else jax.grad(loss_adj)(jnp.array([0.5]))
+        np.testing.assert_allclose(got, ref, rtol=1e-6)
+
+
+def test_save_load_and_csv(tmp_path):
+    m = pendulum(damping=0.2)
+    sol = jb.simulate(m, jnp.array([0.5]), jnp.array([0.0]), 1.0, n_save=6, progress=True)
+    sol.save(tmp_path / "traj.npz")
+    back = jb.load_solution(tmp_path / "traj.npz")
+    for f in ("t", "q", "v", "energy", "t_final"):
+        np.testing.assert_array_equal(getattr(back, f), getattr(sol, f))
+    np.testing.assert_array_equal(back.work["dampers"], sol.work["dampers"])
+    assert dict(back.layout)["q_names"] == ("link_hinge0",) and dict(back.layout)["joint_kinds"] == ("hinge",)
+    assert bool(back.success)
+    sol.to_csv(tmp_path / "traj.csv")
+    lines = (tmp_path / "traj.csv").read_text().splitlines()
+    assert lines[0] == "t,link_hinge0,link_hinge0,energy,work_dampers" and len(lines) == 7
+
+
+def test_batch_equals_loop_and_compiles_once():
+    m = pendulum(damping=0.1)
+    q0s = jnp.linspace(-1.0, 1.0, 5)[:, None]
+    v0s = jnp.zeros((5, 1))
+    sol = jb.simulate_batch(m, q0s, v0s, 1.0, n_save=5, chunk_size=2)
+    for i in range(5):
+        one = jb.simulate(m, q0s[i], v0s[i], 1.0, n_save=5)
+        np.testing.assert_allclose(sol.q[i], one.q, atol=1e-13)
+
+
+def test_sharded_batch_equals_unsharded_on_four_devices():
+    code = textwrap.dedent("""
+        import jax, jax.numpy as jnp, numpy as np
+        jax.config.update("jax_enable_x64", True)
+        import jaxbody as jb
+        assert len(jax.devices()) == 4
+        b = jb.ModelBuilder()
+        b.add_body("a", mass=1.0, com=np.array([0, 0, -0.3]), inertia=np.array([0.1, 0.1, 0.1]),
+                   joints=[jb.Hinge(axis=np.array([0.0, -1.0, 0.0]), damping=0.1)])
+        b.add_body("b", parent="a", pos=np.array([0, 0, -0.5]), mass=0.7, com=np.array([0, 0, -0.2]),
+                   inertia=np.array([0.05, 0.05, 0.05]), joints=[jb.Hinge(axis=np.array([0.0, -1.0, 0.0]))])
+        m = b.build()
+        q0s = jnp.stack([jnp.linspace(-2, 2, 10), jnp.linspace(1, -1, 10)], axis=1)
+        v0s = jnp.zeros((10, 2)).at[3].set(jnp.nan)
+        sh = jb.simulate_batch(m, q0s, v0s, 1.0, n_save=5, chunk_size=2)
+        one = jb.simulate_batch(m, q0s, v0s, 1.0, n_save=5, devices=jax.devices()[:1])
+        assert sh.success.tolist() == [True] * 3 + [False] + [True] * 6, sh.success
+        ok = np.asarray(sh.success)
+        # same numbers up to rounding: XLA vectorises a 2-member and a 10-member batch differently
+        np.testing.assert_allclose(np.asarray(sh.q)[ok], np.asarray(one.q)[ok], rtol=0, atol=1e-12)
+        plain = jax.jit(jax.vmap(lambda q, v: jb.simulate(m, q, v, 1.0, n_save=5, throw=False)))(q0s, v0s)
+        np.testing.assert_allclose(np.asarray(sh.q)[ok], np.asarray(plain.q)[ok], rtol=0, atol=1e-12)
+        assert str(sh.q.sharding) and len(sh.q.sharding.device_set) == 4
+        print("SHARDED_OK")
+    """)
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4 --xla_cpu_use_fusion_emitters=false",
+               JAX_PLATFORMS="cpu")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)
+    assert "SHARDED_OK" in out.stdout, out.stderr[-3000:]
+
+
+class CountingLoad(jb.effects.Effect):
+    """A zero force that counts how often it is traced (Python side effect at trace time)."""
+
+    name = "counting"
+    conservative = True
+
+    def generalized_force(self, ctx):
+        TRACES.append(1)
+        return jnp.zeros_like(ctx.v)
+
+
+TRACES = []
+
+
+def test_batch_compiles_once_for_all_chunks_and_calls():
+    sc = jb.scene(pendulum(), effects=(CountingLoad(),))
+    q0s, v0s = jnp.linspace(-1.0, 1.0, 6)[:, None], jnp.zeros((6, 1))
+    TRACES.clear()
+    jb.simulate_batch(sc, q0s, v0s, 1.0, n_save=3, chunk_size=2)  # three chunks
+    per_compile = len(TRACES)
+    assert per_compile > 0
+    jb.simulate_batch(sc, q0s + 0.1, v0s, 1.0, n_save=3, chunk_size=2)
+    assert len(TRACES) == per_compile  # no new trace: one compilation served every chunk and call
+
+
+def test_parameter_pairs_get_gradients_and_errors_are_pinned():
+    def law(t, q, v, p):
+        return -p["k"] * q - p["c"] * v
+
+    def loss(p):
+        sc = jb.scene(pendulum(), actuation=(law, p))
+        return jb.simulate(sc, jnp.array([0.4]), jnp.array([0.0]), 0.5, n_save=2, rtol=1e-11, atol=1e-11).q[-1, 0]
+
+    p = {"k": jnp.asarray(2.0), "c": jnp.asarray(0.3)}
+    g = jax.grad(loss)(p)
+    h = 1e-5
+    fd = (loss({**p, "k": p["k"] + h}) - loss({**p, "k": p["k"] - h})) / (2 * h)
+    np.testing.assert_allclose(g["k"], fd, rtol=1e-5)
+    m = pendulum()
+    with pytest.raises(ValueError, match=r"phases: need n scenes and n - 1 events, got 2 scenes and 0 events"):
+        jb.Phases(scenes=(jb.scene(m), jb.scene(m)), events=())
+    with pytest.raises(ValueError, match=r"scene: gravity must be a bool or a \(3,\) vector"):
+        jb.scene(m, gravity=jnp.ones(2))
+    with pytest.raises(ValueError, match="scene: actuation must be callable"):
+        jb.scene(m, actuation=(1.0, 2.0))
+    with pytest.raises(ValueError, match="fixed-step solver 'heun' needs dt0"):
+        jb.simulate(m, jnp.array([0.1]), jnp.array([0.0]), 1.0, solver="heun")
+    with pytest.raises(TypeError, match="str lacks nq, nv, qdot, acceleration"):
+        jb.simulate("pendulum", jnp.array([0.1]), jnp.array([0.0]), 1.0)
