@@ -503,8 +503,9 @@ def least_squares(
     """Weighted least squares of the base parameters from measured joint forces.
 
     Solves ``min_β Σ_t Σ_j (τ_tj − (Y₁(q_t, v_t, a_t) β)_j)² / σ_j²``. When ``noise_std``
-    (``σ_j``) is not given it is estimated per DoF from the residuals of an ordinary
-    least-squares fit, ``σ_j² = |ρ_j|² / (n − r/nv)``. The covariance is
+    (``σ_j``) is not given it is estimated per DoF by iterative reweighting,
+    ``σ_j² = |ρ_j|² / (n − h_j)`` with ``ρ_j`` the residuals and ``h_j`` the leverage of the
+    rows of DoF ``j`` in the weighted fit (an unbiased estimate). The covariance is
     ``(W̃ᵀW̃)⁻¹`` with ``W̃`` the weighted base regressor (exact for known ``σ``; with
     estimated ``σ`` the usual large-sample approximation).
     """
@@ -514,18 +515,28 @@ def least_squares(
         raise ValueError(f"tau has shape {tau.shape}, expected ({n}, {model.nv})")
     Y = base.reduce(_stack(model, q, v, a, base.extra))  # (n, nv, r)
     r = base.rank
+    nv = model.nv
+
+    def weighted(sigma):
+        Wt = (Y / sigma[None, :, None]).reshape(-1, r)
+        yt = (tau / sigma[None, :]).reshape(-1)
+        Qm, Rm = np.linalg.qr(Wt)
+        beta = np.linalg.solve(Rm, Qm.T @ yt)
+        return beta, Qm, Rm, Wt, yt
+
     if noise_std is None:
-        W = Y.reshape(-1, r)
-        beta, *_ = np.linalg.lstsq(W, tau.reshape(-1), rcond=None)
-        res = (tau - Y @ beta).reshape(n, model.nv)
-        sigma = np.sqrt(np.sum(res**2, axis=0) / max(n - r / model.nv, 1.0))
+        # iteratively reweighted: σ_j² = (residual sum of squares of DoF j) / (n − leverage of
+        # its rows), which is unbiased for the weighted fit; three rounds settle it
+        sigma = np.ones(nv)
+        for _ in range(4):
+            beta, Qm, _, _, _ = weighted(sigma)
+            res = (tau - Y @ beta).reshape(n, nv)
+            lev = np.sum(Qm**2, axis=1).reshape(n, nv).sum(axis=0)
+            sigma = np.sqrt(np.sum(res**2, axis=0) / np.maximum(n - lev, 1.0))
     else:
         sigma = np.asarray(noise_std, dtype=np.float64)
     sigma = np.where(sigma > 0, sigma, np.finfo(np.float64).tiny ** 0.25)
-    Wt = (Y / sigma[None, :, None]).reshape(-1, r)
-    yt = (tau / sigma[None, :]).reshape(-1)
-    Qm, Rm = np.linalg.qr(Wt)
-    beta = np.linalg.solve(Rm, Qm.T @ yt)
+    beta, Qm, Rm, Wt, yt = weighted(sigma)
     Rinv = np.linalg.inv(Rm)
     cov = Rinv @ Rinv.T
     rss = float(np.sum((yt - Wt @ beta) ** 2))
