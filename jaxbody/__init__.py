@@ -55,6 +55,9 @@ from . import planar as planar
 from . import examples as examples
 # --- simulation (simulate.py) ---
 from .simulate import DynamicalSystem as DynamicalSystem, Solution as Solution, simulate as simulate
+# --- identification and balancing design (identify.py, design.py) ---
+from . import identify as identify
+from . import design as design
 # --- import (io/mujoco.py) ---
 from .io.mujoco import (
     from_mjcf as from_mjcf,

@@ -576,7 +576,8 @@ def balance(
         # (zero counterweight) cannot become a spurious stationary point
         rho = f(1e3 * (1.0 + float(penalty.get("mass", 1.0)) + float(penalty.get("inertia", 1.0))))
         for _ in range(outer):
-            x, fv, c = _solve_al(problem, x, lam, rho, steps, optimizer, learning_rate)
+            with jax.numpy_dtype_promotion("standard"):  # optax's L-BFGS mixes int32/int64
+                x, fv, c = _solve_al(problem, x, lam, rho, steps, optimizer, learning_rate)
             it += steps
             history.append(float(fv))
             res = float(jnp.max(jnp.abs(c)))
@@ -585,7 +586,8 @@ def balance(
             lam = lam + rho * c
             rho = jnp.minimum(rho * 4.0, f(1e8))
     else:
-        x, fv, c = _solve_penalty(problem, x, f(coupling_weight), steps * outer, optimizer, learning_rate)
+        with jax.numpy_dtype_promotion("standard"):
+            x, fv, c = _solve_penalty(problem, x, f(coupling_weight), steps * outer, optimizer, learning_rate)
         it = steps * outer
         history.append(float(fv))
     mu, p = problem.decode(x)

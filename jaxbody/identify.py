@@ -860,7 +860,8 @@ def fit_trajectory(
         opt = optimizer
     is_lbfgs = optimizer == "lbfgs"
     x = (variables0, shoot0)
-    state = opt.init(x)
+    with jax.numpy_dtype_promotion("standard"):
+        state = opt.init(x)
 
     if is_lbfgs:
         vg = optax.value_and_grad_from_state(loss_fn)
@@ -885,7 +886,10 @@ def fit_trajectory(
     converged = False
     it = 0
     for it in range(1, steps + 1):
-        x, state, value, gnorm = step(x, state)
+        # optax's L-BFGS mixes int32 and int64 counters internally: trace it under standard
+        # promotion whatever the caller's setting
+        with jax.numpy_dtype_promotion("standard"):
+            x, state, value, gnorm = step(x, state)
         losses.append(float(value))
         gnorms.append(float(gnorm))
         times.append(time.perf_counter() - start)
