@@ -109,6 +109,18 @@ def static_moments(system, q=None):
     rotated into body axes, ``(n, 3)`` (configuration independent for hinge and ball trees).
     """
     _check_system(system)
+    return _static_moments(system, q)
+
+
+@eqx.filter_jit
+def _static_moments(system, q=None):
+    """Static moments ``m̄_k`` of the augmented bodies in body axes, about each base point.
+
+    Planar systems: configuration independent (:func:`jaxbody.planar.augmented_bodies`),
+    ``(n, 2)``. Models: from :func:`jaxbody.augmented_bodies` at ``q`` (default ``qpos0``)
+    rotated into body axes, ``(n, 3)`` (configuration independent for hinge and ball trees).
+    """
+    _check_system(system)
     if _is_planar(system):
         return _planar.augmented_bodies(system).static_moment
     from .dynamics import augmented_bodies
@@ -170,14 +182,21 @@ def fold_counterweights(system, bodies: Sequence[int], mass, position, gyration:
         ``position``).
     """
     _check_system(system)
-    idx = np.asarray(bodies, dtype=np.int64)
+    idx = tuple(int(b) for b in np.asarray(bodies, dtype=np.int64).reshape(-1))
     mu = jnp.asarray(mass)
     p = jnp.asarray(position)
-    if p.shape != (idx.size, _dim(system)) or mu.shape != (idx.size,):
+    if p.shape != (len(idx), _dim(system)) or mu.shape != (len(idx),):
         raise ValueError(
             f"counterweights: mass has shape {mu.shape} and position {p.shape}, expected "
-            f"({idx.size},) and ({idx.size}, {_dim(system)}) for bodies {tuple(int(i) for i in idx)}"
+            f"({len(idx)},) and ({len(idx)}, {_dim(system)}) for bodies {idx}"
         )
+    return _fold(system, idx, mu, p, float(gyration))
+
+
+@eqx.filter_jit
+def _fold(system, bodies, mass, position, gyration):
+    idx = np.asarray(bodies, dtype=np.int64)
+    mu, p = mass, position
     if _is_planar(system):
         m = system.body_mass
         c = system.body_com
@@ -238,6 +257,17 @@ def _spatial_D(model: Model, q):
     return spatial.absolute_mass_matrix(model.tree, aug.static_moment, aug.augmented_inertia, link)
 
 
+@jax.jit
+def _planar_coupling(system, cfg):
+    return _normalised_offdiag(jax.vmap(_planar.mass_matrix, in_axes=(None, 0))(system, cfg), 1)
+
+
+@eqx.filter_jit
+def _spatial_coupling(system, cfg, rows):
+    Ds = jax.vmap(_spatial_D, in_axes=(None, 0))(system, cfg)[:, rows][:, :, rows]
+    return _normalised_offdiag(Ds, 3)
+
+
 def coupling(system, configurations=None, n_samples: int = 32, seed: int = 0) -> float:
     """Largest normalised off-diagonal coupling over configurations.
 
@@ -251,14 +281,12 @@ def coupling(system, configurations=None, n_samples: int = 32, seed: int = 0) ->
     cfg = _random_configs(system, n_samples, seed) if configurations is None else np.asarray(configurations)
     cfg = jnp.asarray(cfg, system.body_mass.dtype)
     if _is_planar(system):
-        Ms = jax.vmap(_planar.mass_matrix, in_axes=(None, 0))(system, cfg)
-        return float(_normalised_offdiag(Ms, 1))
+        return float(_planar_coupling(system, cfg))
     if any(system.joints.body_is_free):
         raise ValueError("coupling: models with a free-floating body are not supported; use a fixed base")
     keep = np.nonzero(_moving(system))[0]
     rows = (3 * keep[:, None] + np.arange(3)).reshape(-1)
-    Ds = jax.vmap(_spatial_D, in_axes=(None, 0))(system, cfg)[:, rows][:, :, rows]
-    return float(_normalised_offdiag(Ds, 3))
+    return float(_spatial_coupling(system, cfg, rows))
 
 
 # ------------------------------------------------------------------------- synthesis
@@ -279,6 +307,7 @@ class BalanceReport(NamedTuple):
         iterations: optimiser iterations (0 for the closed form).
         wall_time: seconds.
         history: objective value per outer iteration.
+        polished: the final closed-form step of :func:`balance` was applied.
         closed_form_added_mass: added mass of :func:`static_balance` on the same bodies with
             its default distances (for comparison; ``nan`` in the closed form itself).
     """
@@ -298,6 +327,7 @@ class BalanceReport(NamedTuple):
     wall_time: float
     history: np.ndarray
     closed_form_added_mass: float
+    polished: bool = False
 
     def summary(self) -> str:
         lines = [
@@ -494,6 +524,7 @@ def balance(
     outer: int = 12,
     tol: float = 1e-13,
     gyration: float = 0.0,
+    polish: bool = True,
     n_samples: int = 32,
     seed: int = 0,
 ):
@@ -516,6 +547,8 @@ def balance(
         optimizer: ``"lbfgs"`` (optax.lbfgs) or ``"adam"`` (with ``learning_rate``).
         tol: stop the outer iterations when ``max |m̄_k| / scale`` falls below it.
         gyration: radius of gyration of the counterweights (``0``: point masses).
+        polish: with ``exact``, finish with the closed-form step at the optimiser's distances
+            (see :func:`static_balance`) so the static moments vanish to round-off.
         n_samples, seed: random configurations for the coupling measure.
 
     Returns:
@@ -593,6 +626,21 @@ def balance(
     mu, p = problem.decode(x)
     out = problem.folded(x)
     mbar1 = np.asarray(static_moments(out), dtype=np.float64)
+    polished = False
+    if exact and polish and set(cw) == set(req):
+        # Final exact step: keep the distance of every counterweight from its joint that the
+        # optimiser chose and solve, leaves first, for the direction and mass that zero m̄_k
+        # (the closed form of static_balance); it moves the design by the order of the
+        # remaining constraint violation and leaves m̄_k at round-off.
+        res = float(np.max(np.linalg.norm(mbar1[list(req)], axis=1) / req_scale))
+        if res > 0:
+            anchor_cw = anchor[cwi]
+            radius = {k: float(np.linalg.norm(np.asarray(p)[i] - anchor_cw[i])) for i, k in enumerate(cw)}
+            if all(r > 0 for r in radius.values()):
+                out, rep_cf = static_balance(system, bodies=req, radius=radius, n_samples=0)
+                mu, p = jnp.asarray(rep_cf.counterweight_mass), jnp.asarray(rep_cf.counterweight_position)
+                mbar1 = rep_cf.static_moment_after
+                polished = True
     req_idx = np.asarray(req, dtype=np.int64)
     # the closed form (counterweights mirroring each link) on the same bodies, for comparison
     cf_mass = float("nan")
@@ -617,6 +665,7 @@ def balance(
         wall_time=time.perf_counter() - start,
         history=np.asarray(history),
         closed_form_added_mass=cf_mass,
+        polished=polished,
     )
     return out, report
 
@@ -679,8 +728,8 @@ def static_balance(system, bodies: Sequence[int | str] | str | None = None, radi
         static_moment_before=mbar0,
         static_moment_after=mbar1,
         residual_static_moment=float(np.max(np.linalg.norm(mbar1[list(req)], axis=1)) / scale) if req else 0.0,
-        coupling_before=coupling(system, n_samples=n_samples, seed=seed),
-        residual_coupling=coupling(cur, n_samples=n_samples, seed=seed),
+        coupling_before=coupling(system, n_samples=n_samples, seed=seed) if n_samples else float("nan"),
+        residual_coupling=coupling(cur, n_samples=n_samples, seed=seed) if n_samples else float("nan"),
         iterations=0,
         wall_time=time.perf_counter() - start,
         history=np.zeros(0),

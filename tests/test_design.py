@@ -114,7 +114,7 @@ def _ball_tree():
 def test_spatial_ball_tree_block_matrix_becomes_block_diagonal():
     model = _ball_tree()
     assert design.required_bodies(model) == (1, 2, 3)
-    out, rep = design.balance(model)
+    out, rep = design.balance(model, steps=50, outer=10)
     q, _, _ = jb.identify.random_states(model, 16, seed=4)
     batched = jax.jit(jax.vmap(design._spatial_D, in_axes=(None, 0)))
 
