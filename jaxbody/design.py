@@ -233,14 +233,17 @@ def _normalised_offdiag(M, blocks):
     """max over i≠j of |M_ij| / sqrt(M_ii M_jj) (blocks: Frobenius norms of blocks)."""
     if blocks == 1:
         d = jnp.sqrt(jnp.abs(jnp.diagonal(M, axis1=-2, axis2=-1)))
-        R = jnp.abs(M) / (d[..., :, None] * d[..., None, :])
+        dd = d[..., :, None] * d[..., None, :]
+        R = jnp.where(dd > 0, jnp.abs(M) / jnp.where(dd > 0, dd, 1.0), 0.0)
         n = M.shape[-1]
     else:
         n = M.shape[-1] // blocks
         B = M.reshape(M.shape[:-2] + (n, blocks, n, blocks))
         F = jnp.sqrt(jnp.sum(B * B, axis=(-3, -1)))
         d = jnp.sqrt(jnp.diagonal(F, axis1=-2, axis2=-1))
-        R = F / (d[..., :, None] * d[..., None, :])
+        dd = d[..., :, None] * d[..., None, :]
+        R = jnp.where(dd > 0, F / jnp.where(dd > 0, dd, 1.0), 0.0)
+    # massless bodies (zero diagonal) neither couple nor count (handled by the where above)
     return jnp.max(jnp.where(jnp.eye(n, dtype=bool), 0.0, R))
 
 

@@ -180,3 +180,20 @@ def test_cli_balance(capsys):
     assert capsys.readouterr().err.startswith("jaxbody balance: error: --radius must be positive")
     assert design.cli_balance([]) == 2
     assert capsys.readouterr().err.count("\n") == 1
+
+
+def test_closed_form_decouples_panda_and_cli_reads_mjcf(models_dir, capsys):
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        panda = jb.from_mjcf(models_dir / "panda.xml")
+    out, rep = design.static_balance(panda)
+    assert rep.bodies == (2, 3, 4, 5, 6, 7)  # link1 turns about the fixed ground: not required
+    assert rep.coupling_before > 0.1 and rep.residual_coupling <= 1e-10
+    jb.validate_parameters(out)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert design.cli_balance([str(models_dir / "panda.xml")]) == 0
+    text = capsys.readouterr().out
+    assert "link4" in text and "proposed design" in text and "nan" not in text
