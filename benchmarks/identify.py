@@ -108,11 +108,12 @@ def main(argv=None):
     dp = jb.examples.double_pendulum()
     for opt in ("lbfgs", "adam"):
         fit_case("double pendulum, masses + CM, +-30 %", dp, mc, planar_err, x0_of([1.3, 0.7], [0.7, 1.3]), tau2,
-                 1.5, 31, jnp.array([0.3, -0.2]), opt, steps=80 if opt == "lbfgs" else (300 if args.quick else 1500))
+                 1.5, 31, jnp.array([0.3, -0.2]), opt, steps=80 if opt == "lbfgs" else (200 if args.quick else 500))
     arm = jb.examples.three_link_manipulator(gravity=9.81)
-    fit_case("3-link arm (vertical), masses + CM, +-30 %, 2 shooting segments", arm, mc, planar_err,
-             x0_of([1.3, 0.7, 1.3], [0.7, 1.3, 0.7]), tau3, 2.0, 41, jnp.array([0.4, 0.2, -0.3]), "lbfgs",
-             segments=2, use_v=True)
+    for segments, steps in ((1, 250), (2, 120)):
+        fit_case(f"3-link arm (vertical), masses + CM, +-30 %, {segments} shooting segment(s)", arm, mc,
+                 planar_err, x0_of([1.3, 0.7, 1.3], [0.7, 1.3, 0.7]), tau3, 2.0, 41, jnp.array([0.4, 0.2, -0.3]),
+                 "lbfgs", segments=segments, use_v=True, steps=steps)
     if args.spatial:
         b = jb.ModelBuilder(gravity=(0, 0, -9.81), name="arm3")
         b.add_body("base", mass=2.0, com=(0.02, 0.01, 0.1), inertia=(0.02, 0.025, 0.01),
