@@ -58,7 +58,6 @@ from .batching import vmap_chunked as vmap_chunked
 # --- planar systems (planar/, examples/) and design (design.py) ---
 from . import planar as planar
 from . import examples as examples
-from . import design as design
 # --- scenes and simulation (scene.py, effects/, simulation.py) ---
 from . import effects as effects
 from .scene import Scene as Scene, scene as scene, Phases as Phases, Event as Event
@@ -71,6 +70,9 @@ from .simulation import (
     simulate as simulate,
     simulate_batch as simulate_batch,
 )
+# --- identification and balancing design (identify.py, design.py) ---
+from . import identify as identify
+from . import design as design
 # --- import (io/mujoco.py) ---
 from .io.mujoco import (
     from_mjcf as from_mjcf,

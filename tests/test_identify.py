@@ -1,0 +1,275 @@
+"""Identification: regressor, base parameters, weighted least squares, trajectory fitting."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+
+import jaxbody as jb
+from jaxbody import identify as idf
+
+
+@pytest.fixture(scope="module")
+def panda(models_dir):
+    return jb.from_mjcf(models_dir / "panda.xml")
+
+
+def _pendulum(axis=(0.0, 1.0, 0.0)):
+    b = jb.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+    b.add_body("link", mass=1.3, com=(0.2, 0.05, -0.1), inertia=(0.03, 0.02, 0.04),
+               joints=[jb.Hinge(axis=axis)])
+    return b.build()
+
+
+def test_regressor_single_hinge_by_hand():
+    # Independent reference: a body hinged about y at the origin, gravity -z. Its CM height
+    # is z = -sin(q) c_x + cos(q) c_z, so tau = I_yy(O) a - g (cos q m c_x + sin q m c_z).
+    model = _pendulum()
+    g = 9.81
+    for q, v, a in [(0.3, 1.1, -0.7), (-2.0, 0.0, 0.4)]:
+        Y = np.asarray(idf.regressor(model, jnp.array([q]), jnp.array([v]), jnp.array([a])))
+        expected = np.zeros(10)
+        expected[1] = -g * np.cos(q)
+        expected[3] = -g * np.sin(q)
+        expected[6] = a
+        np.testing.assert_allclose(Y[0], expected, rtol=1e-12, atol=1e-12)
+
+
+def test_regressor_reproduces_inverse_dynamics_panda(panda):
+    extra = ("armature", "damping", "friction")
+    friction = jnp.linspace(0.1, 0.7, panda.nv)
+    pi = idf.parameters(panda, extra, friction=friction)
+    q, v, a = idf.random_states(panda, 4, seed=3)
+    for k in range(4):
+        Y = idf.regressor(panda, q[k], v[k], a[k], extra)
+        assert Y.shape == (panda.nv, 10 * panda.n_body + 3 * panda.nv)
+        tau = jb.inverse_dynamics(panda, q[k], v[k], a[k]) + panda.dof_damping * v[k] + friction * np.sign(v[k])
+        np.testing.assert_allclose(np.asarray(Y @ pi), np.asarray(tau), rtol=1e-11, atol=1e-11)
+
+
+def test_parameters_roundtrip_and_pinocchio_order():
+    model = _pendulum()
+    pi = np.asarray(idf.parameters(model))
+    m, c = 1.3, np.array([0.2, 0.05, -0.1])
+    Io = np.diag([0.03, 0.02, 0.04]) + m * (c @ c * np.eye(3) - np.outer(c, c))
+    expected = [m, *(m * c), Io[0, 0], Io[0, 1], Io[1, 1], Io[0, 2], Io[1, 2], Io[2, 2]]
+    np.testing.assert_allclose(pi, expected, rtol=1e-14)
+    back = idf.with_parameters(model, pi)
+    for f in ("body_mass", "body_com", "body_inertia"):
+        np.testing.assert_allclose(np.asarray(getattr(back, f)), np.asarray(getattr(model, f)), atol=1e-15)
+    assert idf.parameter_names(model)[:3] == ["m[link]", "mc_x[link]", "mc_y[link]"]
+
+
+def test_regressor_gradients_match_finite_differences():
+    model = _pendulum(axis=(0.3, 1.0, 0.2))
+    v, a = jnp.array([0.7]), jnp.array([-0.4])
+    check_grads(lambda q: idf.regressor(model, q, v, a), (jnp.array([0.4]),), order=1, modes=("fwd",))
+    pi = idf.parameters(model)
+    f = lambda p: jnp.sum(jb.inverse_dynamics(idf.with_parameters(model, p), jnp.array([0.4]), v, a) ** 2)
+    check_grads(f, (pi,), order=1, modes=("rev",))
+
+
+def test_regressor_errors():
+    model = _pendulum()
+    with pytest.raises(ValueError, match="unknown extra regressor column 'stiction'"):
+        idf.regressor(model, jnp.zeros(1), jnp.zeros(1), jnp.zeros(1), extra=("stiction",))
+    with pytest.raises(ValueError, match=r"parameter vector has shape \(3,\), expected \(10,\)"):
+        idf.with_parameters(model, jnp.zeros(3))
+
+
+def test_log_cholesky_consistency_and_roundtrip():
+    model = _pendulum()
+    pi = np.asarray(idf.parameters(model))
+    theta = idf.log_cholesky(pi)
+    np.testing.assert_allclose(np.asarray(idf.from_log_cholesky(jnp.asarray(theta))), pi, rtol=1e-12, atol=1e-15)
+    rng = np.random.default_rng(0)
+    for _ in range(20):  # every theta is a physically consistent body
+        p = idf.from_log_cholesky(jnp.asarray(rng.normal(size=10)))
+        jb.validate_parameters(idf.with_parameters(model, p))
+    bad = pi.copy()
+    bad[4] = -1.0  # I_xx about the origin negative
+    with pytest.raises(ValueError, match="body 0: inertial parameters are not physically consistent"):
+        idf.log_cholesky(bad)
+    check_grads(idf.from_log_cholesky, (jnp.asarray(theta),), order=1, modes=("fwd", "rev"))
+
+
+@pytest.fixture(scope="module")
+def panda_base(panda):
+    return idf.base_parameters(panda, n_samples=64, seed=1)
+
+
+def test_base_parameters_panda_noise_free(panda, panda_base):
+    base = panda_base
+    assert base.rank == 43  # the 43 base parameters of the Panda's rigid-body model
+    pi = np.asarray(idf.parameters(panda))
+    q, v, a = idf.random_states(panda, 50, seed=7)
+    tau = np.stack([np.asarray(jb.inverse_dynamics(panda, q[k], v[k], a[k]) - panda.dof_armature * a[k])
+                    for k in range(50)])
+    fit = idf.least_squares(panda, q, v, a, tau, base, noise_std=np.ones(panda.nv))
+    true = base.base(pi)
+    err = np.abs(fit.estimate - true) / np.maximum(np.abs(true), 1e-3 * np.abs(true).max())
+    assert err.max() < 1e-8
+    # the regressor factorises: Y π = Y₁ β at fresh states
+    Y = np.asarray(idf.regressor(panda, q[0], v[0], a[0]))
+    np.testing.assert_allclose(base.reduce(Y) @ true, Y @ pi, rtol=1e-10, atol=1e-10)
+    lines = base.describe()
+    assert len(lines) == 43 and lines[0].startswith("beta[0] = ")
+    words = base.augmented_identifiability(panda)
+    assert words[0] == "link0: fixed to the ground, nothing identifiable"
+    assert "static moment m̄_k components x identifiable" in words[2]
+
+
+def test_weighted_least_squares_standard_errors_are_calibrated(panda, panda_base):
+    # Torque noise with known per-joint standard deviations. Over many noise draws the
+    # z-scores (estimate - truth) / reported standard error must be standard normal:
+    # mean of z² near 1, about 5 % beyond 1.96, none beyond 5.
+    base = panda_base
+    pi = np.asarray(idf.parameters(panda))
+    n = 120
+    q, v, a = idf.random_states(panda, n, seed=11)
+    Y1 = base.reduce(idf._stack(panda, q, v, a, ()))
+    tau0 = np.asarray(Y1 @ base.base(pi))
+    sigma = np.linspace(0.05, 0.4, panda.nv)
+    rng = np.random.default_rng(5)
+    z = []
+    for _ in range(40):
+        tau = tau0 + sigma * rng.normal(size=tau0.shape)
+        fit = idf.least_squares(panda, q, v, a, tau, base)  # sigma estimated
+        z.append((fit.estimate - base.base(pi)) / fit.standard_error)
+    z = np.concatenate(z)
+    assert 0.9 < np.mean(z**2) < 1.1
+    assert 0.035 < np.mean(np.abs(z) > 1.96) < 0.065
+    assert np.abs(z).max() < 5.0
+    np.testing.assert_allclose(fit.noise_std, sigma, rtol=0.15)
+
+
+def _torque2(t, q, v):
+    return jnp.stack([2.0 * jnp.sin(2.0 * t), jnp.cos(3.0 * t)])
+
+
+def test_fit_double_pendulum_from_perturbed_start():
+    system = jb.examples.double_pendulum()
+    t = np.linspace(0.0, 1.5, 31)
+    sol = jb.simulate(system, jnp.array([0.3, -0.2]), jnp.zeros(2), 1.5, tau=_torque2, saveat=t, rtol=1e-11, atol=1e-11)
+    P = idf.Parameterisation(system, {"body_mass": "log", "body_com": "identity"})
+    x = P.initial()
+    x0 = {"body_mass": x["body_mass"] + jnp.log(jnp.array([1.3, 0.7])),
+          "body_com": x["body_com"] * jnp.array([[0.7], [1.3]])}
+    res = idf.fit_trajectory(P, x0, t, sol.q, tau=_torque2, v0=jnp.zeros(2), steps=80, tol=1e-20, progress=False)
+    assert res.history["loss"][-1] < 1e-14 * res.history["loss"][0]
+    np.testing.assert_allclose(np.asarray(res.system.body_mass), [1.0, 0.6], rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(res.system.body_com), [[0.4, 0.0], [0.3, 0.0]], atol=1e-5)
+
+
+def _torque3(t, q, v):
+    return jnp.stack([jnp.sin(1.7 * t), 0.8 * jnp.cos(2.3 * t), 0.4 * jnp.sin(3.1 * t)])
+
+
+@pytest.mark.slow
+def test_fit_three_link_arm_from_perturbed_start():
+    system = jb.examples.three_link_manipulator(gravity=9.81)
+    t = np.linspace(0.0, 2.0, 41)
+    q0 = jnp.array([0.4, 0.2, -0.3])
+    sol = jb.simulate(system, q0, jnp.zeros(3), 2.0, tau=_torque3, saveat=t, rtol=1e-11, atol=1e-11)
+    P = idf.Parameterisation(system, {"body_mass": "log", "body_com": "identity"})
+    x = P.initial()
+    x0 = {"body_mass": x["body_mass"] + jnp.log(jnp.array([1.3, 0.7, 1.3])),
+          "body_com": x["body_com"] * jnp.array([[0.7], [1.3], [0.7]])}
+    res = idf.fit_trajectory(P, x0, t, sol.q, sol.v, tau=_torque3, steps=250, tol=1e-22, progress=False)
+    # the augmented quantities (what the motion determines directly) to 1e-5, the raw masses
+    # and centres of mass (which separate m_0k a_k from m_0k a_k², a worse-conditioned step) to 1e-3
+    fit, true = jb.planar.augmented_bodies(res.system), jb.planar.augmented_bodies(system)
+    np.testing.assert_allclose(np.asarray(fit.static_moment), np.asarray(true.static_moment), atol=1e-5 * 2.31)
+    np.testing.assert_allclose(np.asarray(fit.augmented_inertia), np.asarray(true.augmented_inertia), rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(res.system.body_mass), [2.0, 1.5, 0.8], rtol=1e-3)
+    np.testing.assert_allclose(np.asarray(res.system.body_com)[:, 0], [0.35, 0.25, 0.15], rtol=1e-3)
+
+
+@pytest.mark.slow
+def test_fit_multiple_shooting_reduces_loss_and_joins_segments():
+    system = jb.examples.double_pendulum()
+    t = np.linspace(0.0, 1.0, 21)
+    sol = jb.simulate(system, jnp.array([0.3, -0.2]), jnp.zeros(2), 1.0, tau=_torque2, saveat=t, rtol=1e-11,
+                      atol=1e-11)
+    P = idf.Parameterisation(system, {"body_mass": "log"})
+    x0 = {"body_mass": P.initial()["body_mass"] + jnp.log(jnp.array([1.3, 0.7]))}
+    res = idf.fit_trajectory(P, x0, t, sol.q, sol.v, tau=_torque2, steps=40, tol=1e-22, segments=2,
+                             progress=False)
+    loss = res.history["loss"]
+    assert loss[-1] < 1e-6 * loss[0]
+    qs, vs = res.shooting_states
+    assert qs.shape == (1, 2) and vs.shape == (1, 2)
+    np.testing.assert_allclose(np.asarray(qs[0]), np.asarray(sol.q[10]), atol=1e-3)
+    np.testing.assert_allclose(np.asarray(res.system.body_mass), [1.0, 0.6], rtol=1e-2)
+
+
+def test_fit_loss_gradient_matches_finite_differences():
+    system = jb.examples.double_pendulum()
+    t = np.linspace(0.0, 0.5, 6)
+    sol = jb.simulate(system, jnp.array([0.3, -0.2]), jnp.zeros(2), 0.5, tau=_torque2, saveat=t)
+    P = idf.Parameterisation(system, {"body_mass": "log"})
+
+    def loss(logm):
+        s = jb.simulate(P({"body_mass": logm}), jnp.array([0.3, -0.2]), jnp.zeros(2), 0.5, tau=_torque2,
+                        saveat=t, rtol=1e-12, atol=1e-12)
+        return jnp.mean((s.q - sol.q) ** 2)
+
+    check_grads(loss, (jnp.log(jnp.array([1.2, 0.5])),), order=1, modes=("rev",), atol=1e-6, rtol=1e-5)
+
+
+def test_fit_errors():
+    system = jb.examples.double_pendulum()
+    P = idf.Parameterisation(system, {"body_mass": "log"})
+    with pytest.raises(ValueError, match="must be divisible by segments = 3"):
+        idf.fit_trajectory(P, P.initial(), np.linspace(0, 1, 11), np.zeros((11, 2)), segments=3)
+    with pytest.raises(ValueError, match="unknown optimizer 'sgd'"):
+        idf.fit_trajectory(P, P.initial(), np.linspace(0, 1, 11), np.zeros((11, 2)), optimizer="sgd")
+    with pytest.raises(ValueError, match="has no field 'mass'"):
+        idf.Parameterisation(system, {"mass": "log"})
+
+
+@pytest.mark.slow
+def test_fit_spatial_arm_log_cholesky_and_damping():
+    b = jb.ModelBuilder(gravity=(0, 0, -9.81), name="arm3")
+    b.add_body("base", mass=2.0, com=(0.02, 0.01, 0.1), inertia=(0.02, 0.025, 0.01),
+               joints=[jb.Hinge(axis=(0, 0, 1), damping=0.3)])
+    b.add_body("upper", parent="base", pos=(0, 0, 0.2), mass=1.5, com=(0.25, 0.02, 0.0),
+               inertia=(0.004, 0.03, 0.03), joints=[jb.Hinge(axis=(0, 1, 0), damping=0.2)])
+    b.add_body("fore", parent="upper", pos=(0.5, 0, 0), mass=0.8, com=(0.2, 0.0, 0.01),
+               inertia=(0.002, 0.012, 0.012), joints=[jb.Hinge(axis=(0, 1, 0), damping=0.1)])
+    model = b.build()
+
+    def torque(t, q, v):
+        return jnp.stack([0.5 * jnp.sin(1.7 * t), 2.0 * jnp.cos(2.3 * t) + 10.0, 1.0 * jnp.sin(3.1 * t)])
+
+    t = np.linspace(0.0, 1.5, 31)
+    sol = jb.simulate(model, jnp.array([0.0, -0.3, 0.5]), jnp.zeros(3), 1.5, tau=torque, saveat=t,
+                      rtol=1e-11, atol=1e-11)
+    f = np.array([1.3, 0.7, 1.3])
+    pert = eqx.tree_at(lambda m: (m.body_mass, m.body_com, m.body_inertia, m.dof_damping), model,
+                       (model.body_mass * f, model.body_com * f[::-1, None], model.body_inertia * f[:, None, None],
+                        model.dof_damping * f[::-1]))
+    P = idf.InertialParameterisation(model, damping=True)
+    res = idf.fit_trajectory(P, P.initial(pert), t, sol.q, sol.v, tau=torque, steps=200, tol=1e-20, progress=False)
+    base = idf.base_parameters(model, extra=("damping",))
+    bt = base.base(idf.parameters(model, ("damping",)))
+    bf = base.base(idf.parameters(res.system, ("damping",)))
+    jb.validate_parameters(res.system)
+    assert np.abs(bf - bt).max() < 1e-3 * np.abs(bt).max()
+
+
+@pytest.mark.slow
+def test_fit_with_adam_reports_history_and_progress():
+    system = jb.examples.double_pendulum()
+    t = np.linspace(0.0, 0.5, 6)
+    sol = jb.simulate(system, jnp.array([0.3, -0.2]), jnp.zeros(2), 0.5, tau=_torque2, saveat=t)
+    P = idf.Parameterisation(system, {"body_mass": "log"})
+    x0 = {"body_mass": P.initial()["body_mass"] + jnp.log(jnp.array([1.3, 0.7]))}
+    res = idf.fit_trajectory(P, x0, t, sol.q, tau=_torque2, v0=jnp.zeros(2), optimizer="adam",
+                             learning_rate=0.05, steps=30, progress=True)
+    loss = res.history["loss"]
+    assert res.n_iter == 30 and loss.shape == (31,) and res.history["grad_norm"].shape == (31,)
+    assert loss[-1] < 0.1 * loss[0]
+    assert np.all(np.diff(res.history["time"]) >= 0)
