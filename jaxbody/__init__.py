@@ -55,6 +55,8 @@ from . import planar as planar
 from . import examples as examples
 # --- simulation (simulate.py) ---
 from .simulate import DynamicalSystem as DynamicalSystem, Solution as Solution, simulate as simulate
+# --- constraints: Maggi's equations (maggi.py, constraints.py) ---
+from . import maggi as maggi
 # --- import (io/mujoco.py) ---
 from .io.mujoco import (
     from_mjcf as from_mjcf,
