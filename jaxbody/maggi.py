@@ -490,7 +490,14 @@ class ConstrainedSystem(eqx.Module):
         if self.epsilon is not None:
             return self
         x = jnp.zeros((self.nv,), jnp.asarray(q).dtype) if x is None else x
-        return eqx.tree_at(lambda s: s.free, self, _partition(self, t, q, x), is_leaf=lambda v: v is None)
+        return _with_free(self, _partition(self, t, q, x))
+
+
+def _with_free(system, free):
+    return ConstrainedSystem(
+        base=system.base, constraints=system.constraints, epsilon=system.epsilon, free=tuple(free),
+        baumgarte=system.baumgarte,
+    )
 
 
 def _partition(system, t, q, x) -> tuple[int, ...]:
@@ -586,7 +593,7 @@ def constrain(
     )
     check_constraints(system, q_ref, x_ref, t_ref)
     if epsilon is None:
-        system = eqx.tree_at(lambda s: s.free, system, _partition(system, t_ref, q_ref, x_ref))
+        system = _with_free(system, _partition(system, t_ref, q_ref, x_ref))
     else:
         n_eps = system.characteristics(t_ref, q_ref, x_ref).shape[0]
         _, _, ratio = system.parametrisation(t_ref, q_ref, x_ref)
