@@ -868,9 +868,11 @@ def simulate_phases(
         sol = _phase_solve(system, (q, x), t, t_end, jnp.asarray(save_ts, q.dtype), rtol, atol, max_steps, event)
         tt = np.asarray(sol.ts)
         q_all, x_all = np.asarray(sol.ys[0]), np.asarray(sol.ys[1])
-        t_stop = float(tt[-1])  # the t1 save: the end of the phase (the event time if one occurred)
+        # saves before an event, then the end of the phase (the t1 save: the event time if one
+        # occurred), then unused slots filled with inf
         keep = np.isfinite(tt) & np.all(np.isfinite(q_all), axis=1)
         tt, q_all, x_all = tt[keep], q_all[keep], x_all[keep]
+        t_stop = float(tt[-1])
         q_end, x_end = jnp.asarray(q_all[-1]), jnp.asarray(x_all[-1])
         ts.append(tt)
         qs.append(q_all)
