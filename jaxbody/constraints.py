@@ -44,6 +44,7 @@ __all__ = [
     "body_point",
     "body_point_velocity",
     "body_angular_velocity",
+    "connect_constraints",
 ]
 
 
@@ -401,3 +402,49 @@ class PrescribedCoordinate(Constraint):
         t = jnp.asarray(t, jnp.asarray(x).dtype)
         rate = jax.jvp(lambda tt: self.motion(tt, self.params), (t,), (jnp.ones_like(t),))[1]
         return (x[self.dof] - rate)[None]
+
+
+def connect_constraints(mj_model, model, *, axes=None, active_only: bool = True) -> tuple[LoopClosure, ...]:
+    """Loop closures from the MJCF ``<equality><connect>`` constraints of a compiled model.
+
+    MuJoCo's connect constraint keeps an anchor point of ``body1`` on a point of ``body2``
+    (ball-joint loop closure); its compiled ``eq_data`` holds the anchor in both body frames.
+    Each becomes a :class:`LoopClosure` (``body1`` = body ``a``, so the reaction is the force
+    on ``body1``). Site-based connects are converted to their bodies' frames.
+
+    Args:
+        mj_model: the compiled ``mujoco.MjModel`` (as passed to :func:`jaxbody.from_mujoco`)
+            or an MJCF path / XML string.
+        model: the :class:`jaxbody.Model` imported from it.
+        axes: world directions kept in every closure (a planar loop: the two in-plane axes;
+            default all three).
+        active_only: skip constraints that are inactive at start (``eq_active0 = 0``).
+
+    Returns:
+        A tuple of :class:`LoopClosure`, in MuJoCo's order.
+    """
+    import mujoco
+
+    m = mj_model
+    if not isinstance(m, mujoco.MjModel):
+        from .io.mujoco import _compile
+
+        m = _compile(m, "connect_constraints", "MJCF")
+    out = []
+    for i in range(int(m.neq)):
+        if int(m.eq_type[i]) != int(mujoco.mjtEq.mjEQ_CONNECT):
+            continue
+        if active_only and not bool(m.eq_active0[i]):
+            continue
+        data = np.asarray(m.eq_data[i], dtype=np.float64)
+        o1, o2 = int(m.eq_obj1id[i]), int(m.eq_obj2id[i])
+        if int(m.eq_objtype[i]) == int(mujoco.mjtObj.mjOBJ_SITE):
+            # anchors at the sites: their positions in their bodies' frames
+            b1, b2 = int(m.site_bodyid[o1]), int(m.site_bodyid[o2])
+            p1, p2 = np.asarray(m.site_pos[o1]), np.asarray(m.site_pos[o2])
+        else:
+            b1, b2 = o1, o2
+            p1, p2 = data[:3], data[3:6]
+        name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_EQUALITY, i) or f"connect{i}"
+        out.append(LoopClosure(model, b1 - 1, p1, b2 - 1, p2, axes=axes, label=name))
+    return tuple(out)

@@ -174,6 +174,7 @@ def test_four_bar_against_planar_newton_euler(t1, w1):
     np.testing.assert_allclose(r.reactions, ref[7:9], rtol=1e-10, atol=1e-10)
 
 
+@pytest.mark.slow
 def test_four_bar_long_run_drift_is_bounded():
     s = four_bar()
     th = four_bar_angles(0.6)
@@ -320,3 +321,79 @@ def test_knife_edge_on_a_free_sled():
     np.testing.assert_allclose(r.reactions, [3.0 * u * w], rtol=1e-10)
     np.testing.assert_allclose(r.xdot[2], 0.0, atol=1e-12)
     np.testing.assert_allclose(r.xdot[:2] @ np.array([np.cos(0.3), np.sin(0.3)]), 0.0, atol=1e-12)
+
+
+def four_bar_mjcf(th, solref="0.0002 1", solimp="0.99999 0.99999 0.001"):
+    """The four-bar of four_bar() in MJCF, its body frames turned so that qpos = 0 is the closed
+    configuration ``th`` (MuJoCo places the connect's second anchor at qpos = 0)."""
+    q = [th[0], th[1] - th[0], th[2]]
+    inert = lambda m, l, I: f'<inertial pos="{l / 2} 0 0" mass="{m}" diaginertia="{I / 10} {I} {I}"/>'
+    return f"""
+<mujoco>
+  <compiler angle="radian"/>
+  <option gravity="0 0 -{G}" timestep="0.0001"><flag contact="disable"/></option>
+  <worldbody>
+    <body name="crank" euler="0 {-q[0]} 0">
+      <joint name="j1" type="hinge" axis="0 -1 0"/>
+      {inert(MASS[0], L1, INER[0])}
+      <body name="coupler" pos="{L1} 0 0" euler="0 {-q[1]} 0">
+        <joint name="j2" type="hinge" axis="0 -1 0"/>
+        {inert(MASS[1], L2, INER[1])}
+      </body>
+    </body>
+    <body name="rocker" pos="{D_GROUND} 0 0" euler="0 {-q[2]} 0">
+      <joint name="j3" type="hinge" axis="0 -1 0"/>
+      {inert(MASS[2], L3, INER[2])}
+    </body>
+  </worldbody>
+  <equality>
+    <connect name="loop" body1="coupler" body2="rocker" anchor="{L2} 0 0" solref="{solref}" solimp="{solimp}"/>
+  </equality>
+</mujoco>"""
+
+
+def test_mjcf_connect_imports_as_loop_closure_and_matches_mujoco():
+    import warnings
+
+    import mujoco
+
+    th = four_bar_angles(0.6)
+    xml = four_bar_mjcf(th)
+    mj = mujoco.MjModel.from_xml_string(xml)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the connect is imported, not reported as ignored
+        model = jb.from_mujoco(mj)
+    loops = jc.connect_constraints(mj, model, axes=[(1, 0, 0), (0, 0, 1)])
+    assert len(loops) == 1 and loops[0].names == ("loop[0]", "loop[1]")
+    np.testing.assert_allclose(loops[0].point_b, [L3, 0, 0], atol=1e-9)  # MuJoCo's anchor in the rocker frame
+    q = jnp.asarray(mj.qpos0)
+    np.testing.assert_allclose(q, 0.0)
+    s = maggi.constrain(model, loops, q_ref=q)
+    w = four_bar_rates(th, 1.5)
+    v = jnp.array([w[0], w[1] - w[0], w[2]])
+    r = s.solve(0.0, q, v)
+    # same as the builder-made linkage
+    ref = four_bar().solve(0.0, jnp.array([th[0], th[1] - th[0], th[2]]), v)
+    np.testing.assert_allclose(r.xdot, ref.xdot, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(r.reactions, ref.reactions, rtol=1e-10, atol=1e-10)
+    # MuJoCo with a stiff, nearly hard connect: same accelerations and pin force within its softness
+    d = mujoco.MjData(mj)
+    d.qpos[:] = np.asarray(q)
+    d.qvel[:] = np.asarray(v)
+    mujoco.mj_forward(mj, d)
+    np.testing.assert_allclose(d.qacc, r.xdot, rtol=1e-3, atol=1e-3 * float(jnp.max(jnp.abs(r.xdot))))
+    # MuJoCo's connect rows are the world components of the force on body1, like Λ (y row: 0)
+    f_world = np.asarray(d.efc_force[:3])
+    np.testing.assert_allclose(f_world[[0, 2]], r.reactions, rtol=1e-3)
+    assert abs(f_world[1]) < 1e-9
+
+
+def test_cassie_style_loops_are_not_reported_as_ignored():
+    import mujoco
+
+    th = four_bar_angles(0.6)
+    xml = four_bar_mjcf(th).replace("</equality>", '<joint name="couple" joint1="j1" joint2="j3"/></equality>')
+    with pytest.warns(UserWarning) as rec:
+        jb.from_mjcf(xml)
+    msg = str(rec[0].message)
+    assert "1 constraints ('couple')" in msg and "'loop'" not in msg

@@ -164,7 +164,7 @@ def test_reactions_equal_newton_along_a_solution():
         np.testing.assert_allclose(jnp.linalg.norm(out.contact_point[:, 2]), 0.0, atol=1e-12)
 
 
-@pytest.mark.parametrize("regime", [0, 1, 2])
+@pytest.mark.parametrize("regime", [pytest.param(0, marks=pytest.mark.slow), pytest.param(1, marks=pytest.mark.slow), 2])
 def test_energy_conserved_20s(regime):
     s = systems()[regime]
     x = [0.3, -0.5, 6.0, 0.7, 0.2]

@@ -170,6 +170,7 @@ def test_smooth_ice_rough_run():
         assert float(jnp.max(jnp.abs(vel), initial=0.0)) < 1e-8
 
 
+@pytest.mark.slow
 def test_time_triggered_switch():
     slide, _, roll = regimes()
     q0 = jnp.array([0.0, 0.0, 0.3, 1.3, 0.0])
