@@ -57,6 +57,7 @@ from . import examples as examples
 from .simulate import DynamicalSystem as DynamicalSystem, Solution as Solution, simulate as simulate
 # --- constraints: Maggi's equations (maggi.py, constraints.py) ---
 from . import maggi as maggi
+from . import constraints as constraints
 # --- import (io/mujoco.py) ---
 from .io.mujoco import (
     from_mjcf as from_mjcf,
