@@ -458,3 +458,16 @@ def test_spatial_ball_joint_loop_stays_closed():
     sol = jb.simulate(s, q, v, 0.5, rtol=1e-9, atol=1e-9, n_save=6)
     pos, _ = maggi.constraint_residuals(s, sol.t, sol.q, sol.v)
     assert float(jnp.max(jnp.abs(pos))) < 1e-8
+
+
+def test_example5_position_projection_and_unconstrained_equivalence():
+    s = example5()
+    q_off = jnp.array([0.5, -0.93])  # end point off the vertical
+    assert abs(float(s.position_residual(0.0, q_off)[0])) > 1e-2
+    qp = maggi.project_positions(s, q_off)
+    np.testing.assert_allclose(s.position_residual(0.0, qp), 0.0, atol=1e-14)
+    np.testing.assert_allclose(qp[1], -2 * qp[0], rtol=1e-12)  # α2 = −α1 on the manifold
+    # without constraints the reduced dynamics is the model's forward dynamics
+    free = maggi.constrain(s.base.model, [], q_ref=q_off)
+    v = jnp.array([0.3, -1.2])
+    np.testing.assert_allclose(free.solve(0.0, q_off, v).xdot, jb.forward_dynamics(s.base.model, q_off, v, jnp.zeros(2)), rtol=1e-12)
