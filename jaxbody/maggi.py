@@ -443,7 +443,15 @@ class ConstrainedSystem(eqx.Module):
         ``stabilise=True`` adds the Baumgarte terms to the constraint accelerations (the
         vector field does so); reference values are taken without them.
         """
-        t = jnp.asarray(t, jnp.asarray(x).dtype)
+        x = jnp.asarray(x)
+        q = jnp.asarray(q)
+        t = jnp.asarray(t, x.dtype)
+        if isinstance(t, jax.core.Tracer) or isinstance(x, jax.core.Tracer) or isinstance(q, jax.core.Tracer):
+            return self._solve(t, q, x, tau, stabilise)
+        # called eagerly (outside jit/vmap): compile once per system instead of running op by op
+        return _solve_jit(self, t, q, x, tau, stabilise)
+
+    def _solve(self, t, q, x, tau, stabilise) -> MaggiSolution:
         n, s = self.nv, self.n_constraint
         D, h = self.base.bracket_terms(t, q, x, tau)
         A, K, ratio = self.parametrisation(t, q, x)
@@ -491,6 +499,11 @@ class ConstrainedSystem(eqx.Module):
             return self
         x = jnp.zeros((self.nv,), jnp.asarray(q).dtype) if x is None else x
         return _with_free(self, _partition(self, t, q, x))
+
+
+@eqx.filter_jit
+def _solve_jit(system, t, q, x, tau, stabilise):
+    return system._solve(t, q, x, tau, stabilise)
 
 
 def _with_free(system, free):
@@ -595,14 +608,18 @@ def constrain(
     if epsilon is None:
         system = _with_free(system, _partition(system, t_ref, q_ref, x_ref))
     else:
-        n_eps = system.characteristics(t_ref, q_ref, x_ref).shape[0]
+        n_eps = int(np.prod(jax.eval_shape(lambda: epsilon(base, t_ref, q_ref, x_ref)).shape))
+        if n_eps != base.nv - system.n_constraint:
+            raise ValueError(
+                f"epsilon must give n - s = {base.nv} - {system.n_constraint} = "
+                f"{base.nv - system.n_constraint} characteristics, got {n_eps}"
+            )
         _, _, ratio = system.parametrisation(t_ref, q_ref, x_ref)
         if not float(ratio) > SINGULAR_PIVOT:
             raise ValueError(
                 "epsilon does not complete the constraints to solvable extended characteristics "
                 f"(ε, f*) at the reference state (pivot ratio {float(ratio):.3g})"
             )
-        del n_eps
     return system
 
 
@@ -707,15 +724,30 @@ def initial_state(system: ConstrainedSystem, q, x, t=0.0, *, project_initial: bo
 def reactions(system: ConstrainedSystem, t, q, x, tau=None) -> Array:
     """Constraint reactions ``Λ`` (M.12) along a trajectory: ``t`` (N,), ``q`` (N, nq),
     ``x`` (N, nv) (e.g. ``sol.t, sol.q, sol.v`` of :func:`jaxbody.simulate`). Returns (N, s)."""
-    return jax.vmap(lambda tt, qq, xx: system.solve(tt, qq, xx, tau).reactions)(t, q, x)
+    return _reactions(system, jnp.asarray(t), jnp.asarray(q), jnp.asarray(x), tau)
+
+
+@eqx.filter_jit
+def _reactions(system, t, q, x, tau):
+    return jax.vmap(lambda tt, qq, xx: system._solve(tt, qq, xx, tau, False).reactions)(t, q, x)
 
 
 def constraint_residuals(system: ConstrainedSystem, t, q, x) -> tuple[Array, Array]:
     """``(position, velocity)`` residuals along a trajectory, each (N, s): ``φ(t, q)`` on the
     holonomic rows (zero elsewhere) and ``f*(t, q, x)``."""
+    return _residuals(system, jnp.asarray(t), jnp.asarray(q), jnp.asarray(x))
+
+
+@eqx.filter_jit
+def _residuals(system, t, q, x):
     pos = jax.vmap(system.position_residual)(t, q)
     vel = jax.vmap(system.constraint_residual)(t, q, x)
     return pos, vel
+
+
+@eqx.filter_jit
+def _energies(system, q, x):
+    return jax.vmap(system.total_energy)(q, x)
 
 
 # ---------------------------------------------------------------------------------------
@@ -753,6 +785,11 @@ def switch_constraints(new: ConstrainedSystem, t, q, x_before) -> SwitchReport:
     keeps the velocity.
     """
     x_before = jnp.asarray(x_before)
+    return _switch(new, jnp.asarray(t, x_before.dtype), jnp.asarray(q), x_before)
+
+
+@eqx.filter_jit
+def _switch(new, t, q, x_before):
     D = new.kinetic_metric(t, q, x_before)
     if new.n_constraint == 0:
         x_after = x_before
@@ -879,7 +916,7 @@ def simulate_phases(
         vs.append(x_all)
         ph.append(np.full(tt.shape, k))
         lams.append(np.asarray(reactions(system, jnp.asarray(tt), jnp.asarray(q_all), jnp.asarray(x_all))))
-        energies.append(np.asarray(jax.vmap(system.total_energy)(jnp.asarray(q_all), jnp.asarray(x_all))))
+        energies.append(np.asarray(_energies(system, jnp.asarray(q_all), jnp.asarray(x_all))))
         q, x, t = q_end, x_end, t_stop
         if t >= float(t1) - 1e-14:
             break

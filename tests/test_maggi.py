@@ -180,3 +180,16 @@ def test_time_triggered_switch():
     assert float(run.switches[0].energy_lost) > 0
     with pytest.raises(ValueError, match="initial velocities violate the constraints"):
         maggi.simulate_phases([maggi.Phase(roll)], q0, x0, 1.0)
+
+
+def test_bad_epsilon_is_rejected_at_build_time():
+    base = dk.disk_on_plane()
+    q = jnp.array([0.0, 0.0, 0.0, TH, 0.0])
+    roll = dk.rolling_disk().constraints
+    with pytest.raises(ValueError, match=r"epsilon must give n - s = 5 - 2 = 3 characteristics, got 4"):
+        maggi.constrain(base, roll, q_ref=q, epsilon=lambda b, t, q, x: x[:4])
+    # (x1, x2, x5) with rolling: x5 follows from x1 already, x3 and x4 stay undetermined
+    with pytest.raises(ValueError, match=r"epsilon does not complete the constraints to solvable extended characteristics"):
+        maggi.constrain(base, roll, q_ref=q, epsilon=lambda b, t, q, x: jnp.stack([x[0], x[1], x[4]]))
+    with pytest.raises(ValueError, match="constraints must be jaxbody.maggi.Constraint instances"):
+        maggi.constrain(base, [lambda t, q, x: x[0]], q_ref=q)

@@ -258,6 +258,11 @@ class DiskOutputs(eqx.Module):
 def disk_outputs(system: maggi.ConstrainedSystem, t, q, x) -> DiskOutputs:
     """Centre, contact point, normal force, friction reactions and energy along ``(t, q, x)``
     (e.g. ``sol.t, sol.q, sol.v`` of :func:`jaxbody.simulate`)."""
+    return _disk_outputs(system, jnp.asarray(t), jnp.asarray(q), jnp.asarray(x))
+
+
+@eqx.filter_jit
+def _disk_outputs(system, t, q, x):
     base = system.base
 
     def one(tt, qq, xx):
@@ -267,5 +272,5 @@ def disk_outputs(system: maggi.ConstrainedSystem, t, q, x) -> DiskOutputs:
             base.total_energy(qq, xx), res.xdot,
         )
 
-    c, d, n, lam, e, xd = jax.vmap(one)(jnp.asarray(t), jnp.asarray(q), jnp.asarray(x))
+    c, d, n, lam, e, xd = jax.vmap(one)(t, q, x)
     return DiskOutputs(centre=c, contact_point=d, normal_force=n, reactions=lam, energy=e, xdot=xd)
