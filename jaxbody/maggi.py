@@ -561,7 +561,7 @@ def check_constraints(system: ConstrainedSystem, q, x=None, t=0.0, *, rtol: floa
 
 def constrain(
     base,
-    constraints: Sequence[Constraint] = (),
+    constraints: Sequence = (),
     *,
     q_ref: ArrayLike,
     x_ref: ArrayLike | None = None,
