@@ -22,7 +22,7 @@ Bodies are given by name or index (``-1`` = the world). Point coordinates are in
 frame; directions of planes and lines are in the world frame.
 """
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 
 import equinox as eqx
 import jax

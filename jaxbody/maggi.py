@@ -65,7 +65,7 @@ import optimistix as optx
 from jax import lax
 
 from . import linalg
-from ._types import Array, ArrayLike, Float, Int, Scalar
+from ._types import Array, ArrayLike, Float, Scalar
 
 __all__ = [
     "MaggiResult",

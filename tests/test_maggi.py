@@ -128,7 +128,6 @@ def test_switch_projection_energy_and_impulse(to):
 
 def smooth_ice_rough_phases(x_ice=0.5, x_rough=1.2):
     slide, skate, roll = regimes()
-    contact_x = lambda s: (lambda t, q, x: s.base.contact_point(q)[0])
     return [
         maggi.Phase(slide, until=lambda t, q, x: slide.base.contact_point(q)[0] - x_ice),
         maggi.Phase(skate, until=lambda t, q, x: skate.base.contact_point(q)[0] - x_rough),
