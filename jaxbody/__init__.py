@@ -73,6 +73,9 @@ from .simulation import (
 # --- identification and balancing design (identify.py, design.py) ---
 from . import identify as identify
 from . import design as design
+# --- constraints: Maggi's equations (maggi.py, constraints.py) ---
+from . import maggi as maggi
+from . import constraints as constraints
 # --- import (io/mujoco.py) ---
 from .io.mujoco import (
     from_mjcf as from_mjcf,

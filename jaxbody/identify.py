@@ -63,7 +63,7 @@ from ._types import Array, ArrayLike, Float
 from .dynamics import inverse_dynamics
 from .joints import BALL, FREE, HINGE, SLIDE
 from .model import Model
-from .simulate import simulate
+from .simulation import simulate
 
 __all__ = [
     "PARAMETER_NAMES",

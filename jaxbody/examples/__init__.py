@@ -13,3 +13,11 @@ from .telegin import (
     vertical_line_double_pendulum as vertical_line_double_pendulum,
     wheelset_pendulum as wheelset_pendulum,
 )
+from .disk import (
+    DiskOnPlane as DiskOnPlane,
+    disk_on_plane as disk_on_plane,
+    disk_outputs as disk_outputs,
+    rolling_disk as rolling_disk,
+    skating_disk as skating_disk,
+    sliding_disk as sliding_disk,
+)

@@ -307,8 +307,10 @@ def unsupported_features(mj_model) -> list[str]:
                 f"explicit contact pairs (ignored): {len(ids)} pairs "
                 f"({listing(O.mjOBJ_PAIR, ids, num_fb('pair'))})"
             )
-    if int(m.neq) and not off(D.mjDSBL_EQUALITY, D.mjDSBL_CONSTRAINT):
-        ids = list(range(int(m.neq)))
+    # <connect> equalities are loop closures: jaxbody.constraints.connect_constraints imports them
+    eq_other = [i for i in range(int(m.neq)) if int(m.eq_type[i]) != int(mujoco.mjtEq.mjEQ_CONNECT)]
+    if eq_other and not off(D.mjDSBL_EQUALITY, D.mjDSBL_CONSTRAINT):
+        ids = eq_other
         out.append(
             "equality constraints (ignored; declare loop closures as jaxbody constraints): "
             f"{len(ids)} constraints ({listing(O.mjOBJ_EQUALITY, ids, num_fb('equality'))})"

@@ -1,0 +1,450 @@
+"""Ready constraints on any spatial :class:`jaxbody.Model` (the second Maggi layer).
+
+Each class is a :class:`jaxbody.maggi.Constraint` on the model's joint velocities ``v``
+(quasi-velocities of the :class:`jaxbody.maggi.ModelBase`): rows ``f*(t, q, v) = 0``
+linear in ``v``, and for holonomic ones the position residual ``φ(t, q)`` with
+``dφ/dt = f*``. The reactions ``Λ`` that :meth:`jaxbody.maggi.ConstrainedSystem.solve`
+returns for them are forces in newtons (point constraints: the force that the constraint
+exerts on the constrained point along each constrained direction) or, for prescribed
+coordinates, the generalized force on that coordinate.
+
+| class | rows | holonomic | reaction |
+|---|---|---|---|
+| :class:`PointOnPlane` | 1 | yes | force along the plane normal |
+| :class:`PointOnLine` | 2 | yes | force across the line (two normals) |
+| :class:`LoopClosure` | 1–3 | yes | force on the point of body ``a`` along each axis |
+| :class:`PlaneContact` | 1 | yes | normal force of a wheel on a plane |
+| :class:`RollingContact` | 2 | no | friction force at the contact point |
+| :class:`KnifeEdge` | 1 | no | lateral force on the edge |
+| :class:`PrescribedCoordinate` | 1 | yes (in ``t``) | generalized force driving it |
+
+Bodies are given by name or index (``-1`` = the world). Point coordinates are in the body
+frame; directions of planes and lines are in the world frame.
+"""
+
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .maggi import Constraint
+from ._types import Array, Float
+
+__all__ = [
+    "PointOnPlane",
+    "PointOnLine",
+    "LoopClosure",
+    "PlaneContact",
+    "RollingContact",
+    "rolling_wheel",
+    "KnifeEdge",
+    "PrescribedCoordinate",
+    "body_point",
+    "body_point_velocity",
+    "body_angular_velocity",
+    "connect_constraints",
+]
+
+
+def _model(base):
+    model = getattr(base, "model", None)
+    if model is None:
+        raise ValueError(
+            f"these constraints act on a jaxbody.Model base system, got {type(base).__name__}"
+        )
+    return model
+
+
+def _body(model, body) -> int:
+    if isinstance(body, str):
+        return model.body_index(body)
+    body = int(body)
+    if not -1 <= body < model.n_body:
+        raise ValueError(f"body index {body} out of range for a model with {model.n_body} bodies")
+    return body
+
+
+def _vec(v, n=3, what="vector"):
+    v = jnp.asarray(v)
+    if not jnp.issubdtype(v.dtype, jnp.inexact):
+        v = v.astype(jnp.result_type(float))
+    if v.shape != (n,):
+        raise ValueError(f"{what} must have shape ({n},), got {v.shape}")
+    return v
+
+
+def body_point(model, q, body: int, point) -> Float[Array, " 3"]:
+    """World position of a point fixed in ``body`` (``-1``: the world, point as given)."""
+    if body < 0:
+        return jnp.asarray(point, q.dtype)
+    from .kinematics import forward_kinematics
+
+    kin = forward_kinematics(model, q)
+    return kin.body_position[body] + kin.body_rotation[body] @ point
+
+
+def body_point_velocity(model, q, v, body: int, point) -> Float[Array, " 3"]:
+    """World velocity of a point fixed in ``body`` (``d/dt`` of :func:`body_point` along ``q̇ = qpos_rate(q, v)``)."""
+    if body < 0:
+        return jnp.zeros((3,), jnp.asarray(v).dtype)
+    from .kinematics import qpos_rate
+
+    return jax.jvp(lambda qq: body_point(model, qq, body, point), (q,), (qpos_rate(model, q, v),))[1]
+
+
+def body_angular_velocity(model, q, v, body: int) -> Float[Array, " 3"]:
+    """World angular velocity of ``body`` (from ``Ṙ Rᵀ``)."""
+    from .kinematics import forward_kinematics, qpos_rate
+
+    rot = lambda qq: forward_kinematics(model, qq).body_rotation[body]
+    R, Rd = jax.jvp(rot, (q,), (qpos_rate(model, q, v),))
+    W = Rd @ R.T
+    return jnp.stack([W[2, 1], W[0, 2], W[1, 0]])
+
+
+class PointOnPlane(Constraint):
+    """A body point stays on a plane: ``φ = n·(p(q) − p₀) = 0`` (unit ``n``, world frame)."""
+
+    body: int = eqx.field(static=True)
+    point: Array
+    origin: Array
+    normal: Array
+    label: str = eqx.field(static=True)
+
+    def __init__(self, model, body, point, normal, origin=(0.0, 0.0, 0.0), label=None):
+        self.body = _body(model, body)
+        self.point = _vec(point, what="point")
+        self.origin = _vec(origin, what="origin")
+        n = _vec(normal, what="normal")
+        self.normal = n / jnp.linalg.norm(n)
+        self.label = label or f"point of {model.body_names[self.body]!r} on plane"
+
+    @property
+    def size(self):
+        return 1
+
+    @property
+    def names(self):
+        return (self.label,)
+
+    def position(self, base, t, q):
+        return (self.normal @ (body_point(_model(base), q, self.body, self.point) - self.origin))[None]
+
+    def velocity(self, base, t, q, x):
+        return (self.normal @ body_point_velocity(_model(base), q, x, self.body, self.point))[None]
+
+
+def _normals(direction):
+    d = np.asarray(direction, dtype=np.float64)
+    d = d / np.linalg.norm(d)
+    a = np.eye(3)[np.argmin(np.abs(d))]
+    n1 = np.cross(d, a)
+    n1 /= np.linalg.norm(n1)
+    return np.stack([n1, np.cross(d, n1)])
+
+
+class PointOnLine(Constraint):
+    """A body point stays on a line through ``origin`` along ``direction`` (world): two rows,
+    the offsets along two unit normals of the line (the reaction is the force across it)."""
+
+    body: int = eqx.field(static=True)
+    point: Array
+    origin: Array
+    normals: Array
+    label: str = eqx.field(static=True)
+
+    def __init__(self, model, body, point, direction, origin=(0.0, 0.0, 0.0), label=None):
+        self.body = _body(model, body)
+        self.point = _vec(point, what="point")
+        self.origin = _vec(origin, what="origin")
+        self.normals = jnp.asarray(_normals(_vec(direction, what="direction")), self.point.dtype)
+        self.label = label or f"point of {model.body_names[self.body]!r} on line"
+
+    @property
+    def size(self):
+        return 2
+
+    @property
+    def names(self):
+        return (f"{self.label}[n1]", f"{self.label}[n2]")
+
+    def position(self, base, t, q):
+        return self.normals @ (body_point(_model(base), q, self.body, self.point) - self.origin)
+
+    def velocity(self, base, t, q, x):
+        return self.normals @ body_point_velocity(_model(base), q, x, self.body, self.point)
+
+
+class LoopClosure(Constraint):
+    """Point-to-point loop closure: ``p_a(q) − p_b(q)`` vanishes along ``axes`` (world unit
+    vectors; default all three). Give only the independent directions (a planar loop: the
+    two in-plane axes), otherwise the constraints are redundant. The reaction is the force
+    on the point of body ``a`` (body ``b`` feels the opposite)."""
+
+    body_a: int = eqx.field(static=True)
+    body_b: int = eqx.field(static=True)
+    point_a: Array
+    point_b: Array
+    axes: Array
+    label: str = eqx.field(static=True)
+
+    def __init__(self, model, body_a, point_a, body_b, point_b, axes=None, label=None):
+        self.body_a, self.body_b = _body(model, body_a), _body(model, body_b)
+        self.point_a = _vec(point_a, what="point_a")
+        self.point_b = _vec(point_b, what="point_b")
+        ax = np.eye(3) if axes is None else np.asarray(axes, dtype=np.float64).reshape(-1, 3)
+        ax = ax / np.linalg.norm(ax, axis=1, keepdims=True)
+        self.axes = jnp.asarray(ax, self.point_a.dtype)
+        name = lambda b: "world" if b < 0 else model.body_names[b]
+        self.label = label or f"loop {name(self.body_a)}-{name(self.body_b)}"
+
+    @property
+    def size(self):
+        return int(self.axes.shape[0])
+
+    @property
+    def names(self):
+        return tuple(f"{self.label}[{i}]" for i in range(self.size))
+
+    def position(self, base, t, q):
+        m = _model(base)
+        return self.axes @ (body_point(m, q, self.body_a, self.point_a) - body_point(m, q, self.body_b, self.point_b))
+
+    def velocity(self, base, t, q, x):
+        m = _model(base)
+        va = body_point_velocity(m, q, x, self.body_a, self.point_a)
+        vb = body_point_velocity(m, q, x, self.body_b, self.point_b)
+        return self.axes @ (va - vb)
+
+
+def _wheel_contact(model, q, body, centre, axis, radius, normal):
+    """Contact point of a wheel (disk of ``radius`` about ``centre`` with symmetry ``axis``,
+    body frame) with a plane of normal ``normal``: the lowest point of the rim."""
+    from .kinematics import forward_kinematics
+
+    kin = forward_kinematics(model, q)
+    R = kin.body_rotation[body]
+    c = kin.body_position[body] + R @ centre
+    a = R @ axis
+    s = normal - (normal @ a) * a
+    # gradient-safe normalisation (a wheel lying flat has no single contact point)
+    s = s / jnp.sqrt(jnp.maximum(s @ s, jnp.finfo(s.dtype).tiny))
+    return c, c - radius * s
+
+
+class PlaneContact(Constraint):
+    """Holonomic contact of a wheel with the plane ``n·X = height``: ``φ = n·D(q) − height``."""
+
+    body: int = eqx.field(static=True)
+    centre: Array
+    axis: Array
+    radius: Array
+    normal: Array
+    height: Array
+
+    def __init__(self, model, body, radius, centre=(0.0, 0.0, 0.0), axis=(0.0, 0.0, 1.0), normal=(0.0, 0.0, 1.0), height=0.0):
+        self.body = _body(model, body)
+        self.centre = _vec(centre, what="centre")
+        a = _vec(axis, what="axis")
+        self.axis = a / jnp.linalg.norm(a)
+        self.radius = jnp.asarray(radius, self.centre.dtype)
+        n = _vec(normal, what="normal")
+        self.normal = n / jnp.linalg.norm(n)
+        self.height = jnp.asarray(height, self.centre.dtype)
+
+    @property
+    def size(self):
+        return 1
+
+    @property
+    def names(self):
+        return ("wheel on plane",)
+
+    def position(self, base, t, q):
+        _, d = _wheel_contact(_model(base), q, self.body, self.centre, self.axis, self.radius, self.normal)
+        return (self.normal @ d - self.height)[None]
+
+    def velocity(self, base, t, q, x):
+        from .kinematics import qpos_rate
+
+        m = _model(base)
+        return jax.jvp(lambda qq: self.position(base, t, qq), (q,), (qpos_rate(m, q, x),))[1]
+
+
+class RollingContact(Constraint):
+    """Rolling without slip of a wheel on a plane: the material point of the wheel at the
+    contact has no velocity along the plane (two rows: along the wheel's heading
+    ``t₁ = a × n / |a × n|`` and across it, ``t₂ = n × t₁``). The reactions are the friction
+    force components along ``t₁`` and ``t₂``."""
+
+    body: int = eqx.field(static=True)
+    centre: Array
+    axis: Array
+    radius: Array
+    normal: Array
+
+    def __init__(self, model, body, radius, centre=(0.0, 0.0, 0.0), axis=(0.0, 0.0, 1.0), normal=(0.0, 0.0, 1.0)):
+        self.body = _body(model, body)
+        self.centre = _vec(centre, what="centre")
+        a = _vec(axis, what="axis")
+        self.axis = a / jnp.linalg.norm(a)
+        self.radius = jnp.asarray(radius, self.centre.dtype)
+        n = _vec(normal, what="normal")
+        self.normal = n / jnp.linalg.norm(n)
+
+    @property
+    def size(self):
+        return 2
+
+    @property
+    def names(self):
+        return ("rolling (heading)", "rolling (lateral)")
+
+    def tangents(self, model, q):
+        from .kinematics import forward_kinematics
+
+        a = forward_kinematics(model, q).body_rotation[self.body] @ self.axis
+        t1 = jnp.cross(a, self.normal)
+        t1 = t1 / jnp.sqrt(jnp.maximum(t1 @ t1, jnp.finfo(t1.dtype).tiny))
+        return jnp.stack([t1, jnp.cross(self.normal, t1)])
+
+    def velocity(self, base, t, q, x):
+        m = _model(base)
+        c, d = _wheel_contact(m, q, self.body, self.centre, self.axis, self.radius, self.normal)
+        vc = body_point_velocity(m, q, x, self.body, self.centre)
+        w = body_angular_velocity(m, q, x, self.body)
+        return self.tangents(m, q) @ (vc + jnp.cross(w, d - c))
+
+
+def rolling_wheel(model, body, radius, centre=(0.0, 0.0, 0.0), axis=(0.0, 0.0, 1.0), normal=(0.0, 0.0, 1.0), height=0.0):
+    """Both constraints of a wheel rolling on a plane: ``(PlaneContact, RollingContact)``
+    (contact kept, no slip); the reactions are the normal force and the two friction components."""
+    return (
+        PlaneContact(model, body, radius, centre, axis, normal, height),
+        RollingContact(model, body, radius, centre, axis, normal),
+    )
+
+
+class KnifeEdge(Constraint):
+    """A knife edge (skate): the point ``point`` of ``body`` has no velocity across the edge
+    direction ``edge`` (body frame) within the plane of normal ``normal``:
+    ``v_p · (n × e)/|n × e| = 0``. The reaction is the lateral force on the edge."""
+
+    body: int = eqx.field(static=True)
+    point: Array
+    edge: Array
+    normal: Array
+
+    def __init__(self, model, body, point, edge, normal=(0.0, 0.0, 1.0)):
+        self.body = _body(model, body)
+        self.point = _vec(point, what="point")
+        e = _vec(edge, what="edge")
+        self.edge = e / jnp.linalg.norm(e)
+        n = _vec(normal, what="normal")
+        self.normal = n / jnp.linalg.norm(n)
+
+    @property
+    def size(self):
+        return 1
+
+    @property
+    def names(self):
+        return ("knife edge",)
+
+    def velocity(self, base, t, q, x):
+        from .kinematics import forward_kinematics
+
+        m = _model(base)
+        e = forward_kinematics(m, q).body_rotation[self.body] @ self.edge
+        lateral = jnp.cross(self.normal, e)
+        lateral = lateral / jnp.sqrt(jnp.maximum(lateral @ lateral, jnp.finfo(lateral.dtype).tiny))
+        return (lateral @ body_point_velocity(m, q, x, self.body, self.point))[None]
+
+
+class PrescribedCoordinate(Constraint):
+    """Prescribed relative motion of a hinge or slide joint: ``q_j = g(t)``.
+
+    ``motion(t, params)`` returns the prescribed coordinate; its rate comes from automatic
+    differentiation. The reaction is the generalized force (torque or force) the joint
+    needs to follow the motion.
+    """
+
+    qpos: int = eqx.field(static=True)
+    dof: int = eqx.field(static=True)
+    motion: Callable = eqx.field(static=True)
+    params: object
+    label: str = eqx.field(static=True)
+
+    def __init__(self, model, joint, motion, params=None):
+        from .joints import HINGE, SLIDE
+
+        j = model.joint_index(joint) if isinstance(joint, str) else int(joint)
+        if model.joints.type[j] not in (HINGE, SLIDE):
+            raise ValueError(f"PrescribedCoordinate: joint {model.joint_names[j]!r} is not a hinge or slide")
+        self.qpos, self.dof = model.joints.qposadr[j], model.joints.dofadr[j]
+        self.motion, self.params = motion, params
+        self.label = f"prescribed {model.joint_names[j]!r}"
+
+    @property
+    def size(self):
+        return 1
+
+    @property
+    def names(self):
+        return (self.label,)
+
+    def position(self, base, t, q):
+        return (q[self.qpos] - self.motion(t, self.params))[None]
+
+    def velocity(self, base, t, q, x):
+        t = jnp.asarray(t, jnp.asarray(x).dtype)
+        rate = jax.jvp(lambda tt: self.motion(tt, self.params), (t,), (jnp.ones_like(t),))[1]
+        return (x[self.dof] - rate)[None]
+
+
+def connect_constraints(mj_model, model, *, axes=None, active_only: bool = True) -> tuple[LoopClosure, ...]:
+    """Loop closures from the MJCF ``<equality><connect>`` constraints of a compiled model.
+
+    MuJoCo's connect constraint keeps an anchor point of ``body1`` on a point of ``body2``
+    (ball-joint loop closure); its compiled ``eq_data`` holds the anchor in both body frames.
+    Each becomes a :class:`LoopClosure` (``body1`` = body ``a``, so the reaction is the force
+    on ``body1``). Site-based connects are converted to their bodies' frames.
+
+    Args:
+        mj_model: the compiled ``mujoco.MjModel`` (as passed to :func:`jaxbody.from_mujoco`)
+            or an MJCF path / XML string.
+        model: the :class:`jaxbody.Model` imported from it.
+        axes: world directions kept in every closure (a planar loop: the two in-plane axes;
+            default all three).
+        active_only: skip constraints that are inactive at start (``eq_active0 = 0``).
+
+    Returns:
+        A tuple of :class:`LoopClosure`, in MuJoCo's order.
+    """
+    import mujoco
+
+    m = mj_model
+    if not isinstance(m, mujoco.MjModel):
+        from .io.mujoco import _compile
+
+        m = _compile(m, "connect_constraints", "MJCF")
+    out = []
+    for i in range(int(m.neq)):
+        if int(m.eq_type[i]) != int(mujoco.mjtEq.mjEQ_CONNECT):
+            continue
+        if active_only and not bool(m.eq_active0[i]):
+            continue
+        data = np.asarray(m.eq_data[i], dtype=np.float64)
+        o1, o2 = int(m.eq_obj1id[i]), int(m.eq_obj2id[i])
+        if int(m.eq_objtype[i]) == int(mujoco.mjtObj.mjOBJ_SITE):
+            # anchors at the sites: their positions in their bodies' frames
+            b1, b2 = int(m.site_bodyid[o1]), int(m.site_bodyid[o2])
+            p1, p2 = np.asarray(m.site_pos[o1]), np.asarray(m.site_pos[o2])
+        else:
+            b1, b2 = o1, o2
+            p1, p2 = data[:3], data[3:6]
+        name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_EQUALITY, i) or f"connect{i}"
+        out.append(LoopClosure(model, b1 - 1, p1, b2 - 1, p2, axes=axes, label=name))
+    return tuple(out)

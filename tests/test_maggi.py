@@ -1,0 +1,194 @@
+"""Maggi's equations as a general mechanism: parametrisation independence, nonlinear
+constraints against Lagrange multipliers, batching, switching kinematic structure, phases."""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxbody as jb
+from jaxbody import maggi
+from jaxbody.examples import disk as dk
+
+RHO, TH = 0.3, 1.2
+
+
+@functools.lru_cache
+def regimes():
+    return dk.sliding_disk(), dk.skating_disk(), dk.rolling_disk()
+
+
+def rolling_state(rng):
+    q = jnp.asarray(rng.uniform(-1, 1, 5)).at[3].set(rng.uniform(0.4, 2.7))
+    e = rng.normal(size=3) * 2
+    x = jnp.array([e[0], e[1], e[2], -RHO * e[2], -RHO * np.sin(float(q[3])) * e[0]])
+    return q, x
+
+
+def test_solve_general_against_numpy():
+    rng = np.random.default_rng(0)
+    for n in (1, 3, 7):
+        M = rng.normal(size=(n, n))
+        B = rng.normal(size=(n, 2))
+        X, ratio = maggi.solve_general(jnp.asarray(M), jnp.asarray(B))
+        np.testing.assert_allclose(X, np.linalg.solve(M, B), rtol=1e-10, atol=1e-12)
+        assert float(ratio) > 0
+    _, ratio = maggi.solve_general(jnp.ones((3, 3)), jnp.eye(3))
+    assert float(ratio) < maggi.SINGULAR_PIVOT
+
+
+def test_results_do_not_depend_on_the_choice_of_epsilon():
+    """User ε̃ of the paper vs automatic partitioning: same ẋ and Λ; A and K differ."""
+    user = regimes()[2]
+    auto = maggi.constrain(user.base, user.constraints, q_ref=jnp.array([0.0, 0.0, 0.0, TH, 0.0]))
+    assert auto.epsilon is None and len(auto.free) == 3
+    rng = np.random.default_rng(1)
+    for _ in range(4):
+        q, x = rolling_state(rng)
+        ru, ra = user.solve(0.0, q, x), auto.solve(0.0, q, x)
+        np.testing.assert_allclose(ra.xdot, ru.xdot, rtol=1e-11, atol=1e-12)
+        np.testing.assert_allclose(ra.reactions, ru.reactions, rtol=1e-11, atol=1e-12)
+        G = user.constraint_jacobian(0.0, q, x)
+        for r in (ru, ra):
+            np.testing.assert_allclose(G @ r.A, 0.0, atol=1e-12)
+            np.testing.assert_allclose(G @ r.K, np.eye(2), atol=1e-12)
+
+
+def test_nonlinear_constraint_against_lagrange_multipliers():
+    """A sliding disk whose angular speed is held constant (f* = |ω|² − ω₀² = 0, nonlinear
+    in x): Maggi with A = ∂x/∂ε (AD) vs the multiplier solution written here."""
+    base = dk.disk_on_plane()
+    speed = maggi.VelocityConstraint(
+        lambda b, t, q, x: x[0] ** 2 + x[1] ** 2 + x[2] ** 2 - 26.0, size=1, label="spin rate", linear=False
+    )
+    q0 = jnp.array([0.0, 0.0, 0.0, TH, 0.0])
+    x0 = jnp.array([0.4, -0.7, jnp.sqrt(26.0 - 0.65), 0.6, 0.8])
+    s = maggi.constrain(base, [speed], q_ref=q0, x_ref=x0)
+    r = s.solve(0.0, q0, x0)
+    D, h = base.bracket_terms(0.0, q0, x0)
+    G = jnp.array([[2 * x0[0], 2 * x0[1], 2 * x0[2], 0.0, 0.0]])
+    # KKT: D ẋ + h = Gᵀλ, G ẋ = 0 (f* does not depend on t, q)
+    K = jnp.block([[D, -G.T], [G, jnp.zeros((1, 1))]])
+    sol = np.linalg.solve(np.asarray(K), np.concatenate([-np.asarray(h), [0.0]]))
+    np.testing.assert_allclose(r.xdot, sol[:5], rtol=1e-11, atol=1e-12)
+    np.testing.assert_allclose(r.reactions, sol[5:], rtol=1e-11)
+    traj = jb.simulate(s, q0, x0, 2.0, rtol=1e-10, atol=1e-10, n_save=5)
+    np.testing.assert_allclose(jnp.sum(traj.v[:, :3] ** 2, axis=1), 26.0, rtol=1e-9)
+    assert abs(float(r.reactions[0])) > 1e-2
+
+
+def test_vmap_over_1024_disk_states():
+    s = regimes()[2]
+    rng = np.random.default_rng(2)
+    states = [rolling_state(rng) for _ in range(1024)]
+    qs = jnp.stack([q for q, _ in states])
+    xs = jnp.stack([x for _, x in states])
+    f = jax.jit(jax.vmap(lambda q, x: s.solve(0.0, q, x)))
+    out = f(qs, xs)
+    assert out.A.shape == (1024, 5, 3) and out.K.shape == (1024, 5, 2) and out.reactions.shape == (1024, 2)
+    assert bool(jnp.all(out.result._value == 0))
+    for i in (0, 511, 1023):
+        one = s.solve(0.0, qs[i], xs[i])
+        np.testing.assert_allclose(out.xdot[i], one.xdot, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(out.reactions[i], one.reactions, rtol=1e-12, atol=1e-12)
+    # parameters batch too: reactions scale with the mass
+    masses = jnp.linspace(1.0, 3.0, 8)
+    lam = jax.vmap(lambda m: dk.rolling_disk(base=dk.DiskOnPlane(mass=m, radius=jnp.asarray(RHO), gravity=jnp.asarray(9.81))).solve(0.0, qs[0], xs[0]).reactions)(masses)
+    np.testing.assert_allclose(lam / masses[:, None], np.broadcast_to(lam[:1] / masses[0], lam.shape), rtol=1e-12)
+
+
+@pytest.mark.parametrize("to", [1, 2])
+def test_switch_projection_energy_and_impulse(to):
+    """Sliding → skating / rolling: x⁺ = A(AᵀDA)⁻¹AᵀD x⁻, energy lost = ½ΔxᵀDΔx ≥ 0."""
+    new = regimes()[to]
+    rng = np.random.default_rng(4)
+    for _ in range(3):
+        q = jnp.asarray(rng.uniform(-1, 1, 5)).at[3].set(rng.uniform(0.5, 2.6))
+        x = jnp.asarray(rng.normal(size=5))
+        rep = maggi.switch_constraints(new, 0.0, q, x)
+        np.testing.assert_allclose(new.constraint_residual(0.0, q, rep.x_after), 0.0, atol=1e-12)
+        D = new.kinetic_metric(0.0, q, x)
+        A = new.solve(0.0, q, x).A
+        expected = A @ np.linalg.solve(A.T @ D @ A, A.T @ D @ x)
+        np.testing.assert_allclose(rep.x_after, expected, rtol=1e-10, atol=1e-12)
+        dx = x - rep.x_after
+        assert float(rep.energy_lost) >= 0.0
+        np.testing.assert_allclose(rep.energy_lost, 0.5 * dx @ D @ dx, rtol=1e-12)
+        np.testing.assert_allclose(rep.energy_before - rep.energy_after, rep.energy_lost, rtol=1e-10, atol=1e-12)
+        # the generalized impulse is carried by the constraints: D Δx = Gᵀ Π
+        G = new.constraint_jacobian(0.0, q, x)
+        np.testing.assert_allclose(rep.generalized_impulse, G.T @ rep.impulse, atol=1e-12)
+        # switching back to a looser set keeps the velocity
+        back = maggi.switch_constraints(regimes()[to - 1], 0.0, q, rep.x_after)
+        np.testing.assert_allclose(back.x_after, rep.x_after, atol=1e-13)
+        np.testing.assert_allclose(back.energy_lost, 0.0, atol=1e-13)
+
+
+def smooth_ice_rough_phases(x_ice=0.5, x_rough=1.2):
+    slide, skate, roll = regimes()
+    return [
+        maggi.Phase(slide, until=lambda t, q, x: slide.base.contact_point(q)[0] - x_ice),
+        maggi.Phase(skate, until=lambda t, q, x: skate.base.contact_point(q)[0] - x_rough),
+        maggi.Phase(roll),
+    ]
+
+
+def test_smooth_ice_rough_run():
+    phases = smooth_ice_rough_phases()
+    q0 = jnp.array([0.0, 0.0, 0.3, 1.3, 0.0])
+    x0 = jnp.array([0.0, 0.5, 12.0, 1.0, 0.4])  # slides forward with lateral slip
+    run = maggi.simulate_phases(phases, q0, x0, 3.0, n_save=61, rtol=1e-10, atol=1e-10)
+    assert len(run.switches) == 2
+    t_ice, t_rough = (float(t) for t in run.switch_times)
+    assert 0 < t_ice < t_rough < 3.0
+    base = phases[0].system.base
+    # the switches happen where the contact point enters the regions
+    for t_sw, edge in ((t_ice, 0.5), (t_rough, 1.2)):
+        i = int(np.flatnonzero(np.isclose(np.asarray(run.t), t_sw))[0])
+        np.testing.assert_allclose(base.contact_point(run.q[i])[0], edge, atol=1e-8)
+    for rep in run.switches:
+        assert float(rep.energy_lost) > 0.0
+        i = int(np.flatnonzero(np.isclose(np.asarray(run.t), float(rep.t)))[0])
+        dx = rep.x_before - rep.x_after
+        D = phases[0].system.kinetic_metric(0.0, run.q[i], rep.x_before)
+        np.testing.assert_allclose(rep.energy_lost, 0.5 * dx @ D @ dx, rtol=1e-12)
+    # energy is conserved within each phase and drops by the reported amount at switches
+    E = np.asarray(run.energy)
+    ph = np.asarray(run.phase)
+    for k in range(3):
+        Ek = E[ph == k]
+        np.testing.assert_allclose(Ek, Ek[0], rtol=1e-8)
+    np.testing.assert_allclose(E[ph == 0][-1] - E[ph == 1][0], run.switches[0].energy_lost, rtol=1e-8)
+    np.testing.assert_allclose(E[ph == 1][-1] - E[ph == 2][0], run.switches[1].energy_lost, rtol=1e-8)
+    # constraints of each phase hold along it
+    for k, sys in enumerate(p.system for p in phases):
+        m = ph == k
+        vel = jax.vmap(sys.constraint_residual)(run.t[m], run.q[m], run.v[m])
+        assert float(jnp.max(jnp.abs(vel), initial=0.0)) < 1e-8
+
+
+@pytest.mark.slow
+def test_time_triggered_switch():
+    slide, _, roll = regimes()
+    q0 = jnp.array([0.0, 0.0, 0.3, 1.3, 0.0])
+    x0 = jnp.array([0.0, 0.5, 4.0, 1.0, 0.4])
+    run = maggi.simulate_phases([maggi.Phase(slide, until=0.4), maggi.Phase(roll)], q0, x0, 1.0, n_save=11)
+    np.testing.assert_allclose(run.switch_times, [0.4])
+    assert float(run.switches[0].energy_lost) > 0
+    with pytest.raises(ValueError, match="initial velocities violate the constraints"):
+        maggi.simulate_phases([maggi.Phase(roll)], q0, x0, 1.0)
+
+
+def test_bad_epsilon_is_rejected_at_build_time():
+    base = dk.disk_on_plane()
+    q = jnp.array([0.0, 0.0, 0.0, TH, 0.0])
+    roll = dk.rolling_disk().constraints
+    with pytest.raises(ValueError, match=r"epsilon must give n - s = 5 - 2 = 3 characteristics, got 4"):
+        maggi.constrain(base, roll, q_ref=q, epsilon=lambda b, t, q, x: x[:4])
+    # (x1, x2, x5) with rolling: x5 follows from x1 already, x3 and x4 stay undetermined
+    with pytest.raises(ValueError, match=r"epsilon does not complete the constraints to solvable extended characteristics"):
+        maggi.constrain(base, roll, q_ref=q, epsilon=lambda b, t, q, x: jnp.stack([x[0], x[1], x[4]]))
+    with pytest.raises(ValueError, match="constraints must be jaxbody.maggi.Constraint instances"):
+        maggi.constrain(base, [lambda t, q, x: x[0]], q_ref=q)
