@@ -186,10 +186,12 @@ def worker_jaxbody(cfg, rec):
     import jaxbody as jb
 
     dtype = jnp.float64 if x64 else jnp.float32
+    m = _rigid_rk4(cfg["path"])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # actuators/contacts are reported and ignored
-        model = jb.from_mjcf(cfg["path"], dtype=dtype)
-    m = _rigid_rk4(cfg["path"])
+        # the MjModel MuJoCo runs (springs, dampers, gravity flags honoured), not the file:
+        # from_mjcf(path) would keep the joint damping MuJoCo's rollout has switched off
+        model = jb.from_mujoco(m, dtype=dtype)
     rec.data.update(dtype=cfg["dtype"], devices=[str(d) for d in jax.devices()], nq=int(m.nq), nv=int(m.nv))
     rep = dict(min_time=cfg["min_time"], repeats=cfg["repeats"])
 
