@@ -34,6 +34,8 @@ __all__ = [
     "markdown_table",
     "load_average",
     "mem_available_bytes",
+    "ADJOINTS",
+    "simulate_adjoint",
 ]
 
 
@@ -217,6 +219,30 @@ def run_worker(cmd, *, timeout: float, result_file: pathlib.Path, env=None) -> d
     if status != "ok":
         result["stderr_tail"] = (err or "")[-2000:]
     return result
+
+
+# ----------------------------------------------------------------------------- adjoints
+ADJOINTS = ("checkpoint", "backsolve", "forward")
+
+
+def simulate_adjoint(name: str):
+    """The ``adjoint=`` argument of ``jb.simulate`` for a preset name.
+
+    ``"checkpoint"``: recursive checkpointing (reverse mode, jaxbody's default);
+    ``"backsolve"``: the continuous adjoint, integrated backwards (reverse mode, O(1) memory);
+    ``"forward"``: forward mode (for ``jax.jacfwd``/``jax.jvp``). ``jb.simulate`` does not take
+    these names yet, so this returns the diffrax objects; once it does, return ``name``.
+    """
+    import diffrax  # imported here: this module stays free of JAX
+
+    presets = {
+        "checkpoint": diffrax.RecursiveCheckpointAdjoint,
+        "backsolve": diffrax.BacksolveAdjoint,
+        "forward": diffrax.ForwardMode,
+    }
+    if name not in presets:
+        raise ValueError(f"unknown adjoint {name!r}; choose from {ADJOINTS}")
+    return presets[name]()
 
 
 # ----------------------------------------------------------------------------- output

@@ -34,6 +34,7 @@ import pathlib
 import re
 import warnings
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -88,8 +89,9 @@ def from_mjcf(source, *, strict: bool = False, dtype=None) -> Model:
         source: path to an ``.xml`` file (``str`` or ``os.PathLike``), or the XML itself as a
             string starting with ``<``. Relative includes and assets resolve as in MuJoCo.
         strict: raise instead of warning when the model has features jaxbody does not model.
-        dtype: floating dtype of the parameters (default: JAX's default float, float64 under
-            ``jax_enable_x64``).
+        dtype: floating dtype of the parameters (default ``None``: JAX's default float,
+            float64 under ``jax_enable_x64``, else float32). ``float64`` without
+            ``jax_enable_x64`` is refused (JAX would silently narrow it to float32).
 
     Returns:
         The :class:`~jaxbody.Model` (see the module docstring for the conventions).
@@ -100,7 +102,8 @@ def from_mjcf(source, *, strict: bool = False, dtype=None) -> Model:
             a moving body without mass, an inertia breaking the triangle inequality, a free
             joint below a root body); the compiled parameters fail
             :func:`~jaxbody.validate_parameters` (naming the body or joint); or, with
-            ``strict=True``, the model has features jaxbody does not model.
+            ``strict=True``, the model has features jaxbody does not model; ``dtype`` is not a
+            floating dtype, or is float64 while ``jax_enable_x64`` is off.
 
     Warns:
         UserWarning: one warning listing every feature jaxbody ignores (``strict=False``).
@@ -136,6 +139,7 @@ def from_mujoco(mj_model, *, strict: bool = False, dtype=None) -> Model:
 
 def _from_mujoco(mj_model, strict: bool, dtype, _caller: str) -> Model:
     """:func:`from_mujoco`, with the public function's name (``_caller``) for messages."""
+    dtype = _check_dtype(dtype, _caller)
     mujoco = _mujoco()
     m = mj_model
     if not isinstance(m, mujoco.MjModel):
@@ -209,7 +213,7 @@ def _from_mujoco(mj_model, strict: bool, dtype, _caller: str) -> Model:
         _unique_names([_name(m, mujoco.mjtObj.mjOBJ_KEY, i) for i in range(nkey)], "key")
     )
 
-    f = dtype or jnp.result_type(float)
+    f = dtype
     arr = lambda a, shape: jnp.asarray(np.asarray(a, dtype=np.float64).reshape(shape), dtype=f)
     nj, nq, nv = layout.n_joint, layout.nq, layout.nv
     model = Model(
@@ -412,6 +416,30 @@ def unsupported_features(mj_model) -> list[str]:
 
 
 # ---------------------------------------------------------------------------- helpers
+def _check_dtype(dtype, caller):
+    """The floating dtype the parameters get: ``None`` is JAX's default float.
+
+    Refuses a dtype JAX would silently narrow: ``float64`` without ``jax_enable_x64`` gives
+    float32 arrays, which is not what the caller asked for.
+    """
+    if dtype is None:
+        return jnp.result_type(float)
+    try:
+        want = np.dtype(dtype)
+    except TypeError:
+        raise ValueError(f"{caller}: dtype must be a floating dtype, got {dtype!r}") from None
+    if not np.issubdtype(want, np.floating):
+        raise ValueError(f"{caller}: dtype must be a floating dtype, got {want}")
+    got = np.dtype(jax.dtypes.canonicalize_dtype(want))
+    if got != want:
+        raise ValueError(
+            f"{caller}: dtype={want} needs 64-bit JAX, which is off (JAX would silently give "
+            f"{got}); enable it before creating arrays with "
+            'jax.config.update("jax_enable_x64", True) or JAX_ENABLE_X64=1, or pass dtype=jnp.float32'
+        )
+    return want
+
+
 def _compile(source, caller, fmt):
     mujoco = _mujoco()
     if isinstance(source, str) and source.lstrip().startswith("<"):

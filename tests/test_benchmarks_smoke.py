@@ -1,0 +1,94 @@
+"""The throughput and gradient benchmarks run end to end at a tiny size and leave sane records.
+
+Not a timing test (STYLE rule 15: no timings in tests): it checks that the harness runs
+through the public API, writes its Markdown/JSON/PNG records with a stamp, and that the
+numbers in them are consistent (positive rates, the steps it claims, finite states, the
+three adjoints agreeing). The fast case runs the double pendulum (chain2) at batches 1 and
+4 for 10 steps; the slow one adds float32, accuracy runs and the reverse-mode adjoints.
+"""
+
+import json
+import os
+import pathlib
+import subprocess
+import sys
+
+import pytest
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
+BENCH = REPO / "benchmarks"
+
+
+def _run(script, out, *args, timeout=300):
+    env = dict(os.environ, PYTHONPATH=str(REPO), MPLBACKEND="Agg")
+    env.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    env.pop("JAX_ENABLE_X64", None)
+    cmd = [sys.executable, str(BENCH / script), "--out", str(out), "--name", "rec",
+           "--min-time", "0.01", "--repeats", "1", *args]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env, cwd=REPO)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    for ext in ("md", "json", "png"):
+        assert (out / f"rec.{ext}").stat().st_size > 0
+    rec = json.loads((out / "rec.json").read_text())
+    assert rec["stamp"]["commit"] and rec["stamp"]["command"].endswith(" ".join(args[-2:]))
+    assert "jax" in rec["stamp"]["versions"] and rec["stamp"]["load_average_start"] is not None
+    md = (out / "rec.md").read_text()
+    assert "## Targets (issue 7)" in md and rec["stamp"]["commit"] in md
+    return rec, md
+
+
+def _check_throughput(rec, impls):
+    runs = rec["runs"]["chain2"]
+    for impl in impls:
+        w = runs[impl]
+        assert w["status"] == "ok", w.get("stderr_tail")
+        for b in ("1", "4"):
+            row = w["batches"][b]
+            if impl == "mujoco":
+                assert row["steps"] == 10
+                for key in ("mj1", "mjN"):
+                    assert 0 < row[key]["steps_per_s"] < 1e9
+            else:
+                assert row["steps"] == 10 and row["finite"], row  # RK4 took exactly t1/dt steps
+                assert 0 < row["run"]["steps_per_s"] < 1e9
+                assert row["compile"]["compile_total_s"] > 0
+        if impl != "mujoco":
+            assert w["batches"]["4"]["path"].startswith("jb.vmap_chunked")  # --chunk 2: the chunked path ran
+            assert w["single"]["steps"] == 10 and w["single"]["per_step_s"] > 0
+    assert runs["mujoco"]["mjcb_time_at_start"] == "None"
+    ids = {t["id"] for t in rec["targets"]}
+    assert {"T1", "T2", "T4", "T5"} <= ids
+
+
+def test_throughput_and_gradients_smoke(tmp_path):
+    rec, md = _run("throughput.py", tmp_path / "t", "--impls", "jb64,mujoco", "--no-accuracy",
+                   "--single-steps", "10", "--chunk", "2", "--models", "chain2", "--batches", "1,4", "--steps", "10")
+    _check_throughput(rec, ("jb64", "mujoco"))
+    assert "| chain2 | 4 | 10 |" in md
+
+    rec, md = _run("gradients.py", tmp_path / "g", "--modes", "forward,forward_mode", "--horizon-factor", "1",
+                   "--fwd-params", "2", "--models", "chain2", "--steps", "10")
+    runs = rec["runs"]["chain2"]
+    assert runs["forward"]["status"] == "ok" and runs["forward_mode"]["status"] == "ok"
+    assert runs["forward"]["finite"] and len(runs["forward_mode"]["value"]) == 2
+    assert runs["forward"]["memory"]["temp_size_in_bytes"] >= 0 and runs["forward"]["peak_rss_bytes"] > 0
+    assert rec["analysis"]["chain2"]["forward"]["time_ratio"] == pytest.approx(1.0)
+
+
+@pytest.mark.slow
+def test_throughput_and_gradients_full_smoke(tmp_path):
+    rec, md = _run("throughput.py", tmp_path / "t", "--impls", "jb64,jb32,mujoco", "--accuracy-models", "chain2",
+                   "--accuracy-states", "2", "--single-steps", "10", "--chunk", "2", "--models", "chain2",
+                   "--batches", "1,4", "--steps", "10", timeout=900)
+    _check_throughput(rec, ("jb64", "jb32", "mujoco"))
+    acc = rec["accuracy"]["chain2"]
+    assert acc["rk4_f64_vs_mujoco_rk4"] < 1e-10  # same method, same model: the harness compares like with like
+    assert 0 < acc["rk4_f32_vs_rk4_f64"] < 1e-4
+    assert "## float32 against float64 (after 1 s)" in md
+
+    rec, md = _run("gradients.py", tmp_path / "g", "--fwd-params", "2", "--models", "chain2", "--steps", "10",
+                   timeout=900)
+    a = rec["analysis"]["chain2"]
+    assert a["forward_mode_vs_checkpoint_rel"] < 1e-10
+    assert a["backsolve_vs_checkpoint_rel"] < 1e-6
+    assert rec["runs"]["chain2"]["checkpoint"]["longer_horizon"]["steps"] == 40
