@@ -230,22 +230,14 @@ def simulate_adjoint(name: str):
 
     ``"checkpoint"``: recursive checkpointing (reverse mode, jaxbody's default);
     ``"backsolve"``: the continuous adjoint, integrated backwards (reverse mode, O(1) memory);
-    ``"forward"``: forward mode (for ``jax.jacfwd``/``jax.jvp``). ``jb.simulate`` does not take
-    these names yet, so this returns the diffrax objects; once it does, return ``name``.
+    ``"forward"``: forward mode (for ``jax.jacfwd``/``jax.jvp``). ``jb.simulate`` takes these
+    names itself.
     """
-    import diffrax  # imported here: this module stays free of JAX
-
-    presets = {
-        "checkpoint": diffrax.RecursiveCheckpointAdjoint,
-        "backsolve": diffrax.BacksolveAdjoint,
-        "forward": diffrax.ForwardMode,
-    }
-    if name not in presets:
-        raise ValueError(f"unknown adjoint {name!r}; choose from {ADJOINTS}")
-    return presets[name]()
+    if name not in ("checkpoint", "backsolve", "forward"):
+        raise ValueError(f"unknown adjoint {name!r}; choose from checkpoint, backsolve, forward")
+    return name
 
 
-# ----------------------------------------------------------------------------- output
 def markdown_table(headers, rows) -> str:
     def cell(x):
         return "" if x is None else str(x).replace("|", "\\|")
