@@ -150,6 +150,7 @@ def forward_kinematics(model: Model, q: Float[ArrayLike, " nq"]) -> Kinematics:
         types = np.asarray(joints.type)
         is_free = types == FREE
         anchor = jnp.einsum("nij,nj->ni", R_w[pre], model.joint_pos) + t_w[pre]
+        # a free joint turns about the body origin (MuJoCo), not about joint_pos
         anchor = jnp.where(is_free[:, None], body_x[jbody], anchor)
         axis = jnp.einsum("nij,nj->ni", R_w[pre], model.joint_axis)
     else:
@@ -164,6 +165,9 @@ def forward_kinematics(model: Model, q: Float[ArrayLike, " nq"]) -> Kinematics:
     dtypes = np.asarray(joints.type)[dof_joint] if joints.nv else np.zeros(0, int)
     nv = joints.nv
     if nv:
+        # Ball and free-rotation rates are angular velocities in *body* axes (MuJoCo qvel), so
+        # their unit motions are the body's axes in world (columns of R_body); free translation
+        # rates are world-frame velocities, so those motions are the world unit vectors.
         body_cols = jnp.swapaxes(body_R, -1, -2)[dof_body, comp]  # column `comp` of R_body
         unit = jnp.eye(3, dtype=dtype)[comp]
         jaxis = axis[dof_joint]
@@ -187,6 +191,8 @@ def forward_kinematics(model: Model, q: Float[ArrayLike, " nq"]) -> Kinematics:
     else:
         base = body_x
         sigma = jnp.zeros_like(body_x)
+    # The pole O_k is fixed in body k where O_0k is at the joint reference; the two differ only
+    # when a slide or an off-anchor joint of the same body has moved (spec §2).
     pole = body_x + jnp.einsum("nij,nj->ni", body_R, sigma)
     return Kinematics(
         body_rotation=body_R,

@@ -62,7 +62,7 @@ def double_pendulum(
     ``(M_1, M_2)``. ``length = (L_1, L_2)``; only ``L_1`` enters the dynamics (``L_2`` is the
     length of the second link for drawing and may be omitted).
     """
-    return planar.chain(mass, com_distance, length, inertia, gravity, names=("link1", "link2"))
+    return planar.chain(mass, com_distance, length, inertia, gravity=gravity, names=("link1", "link2"))
 
 
 # ------------------------------------------------------------------------- Example 2
@@ -81,7 +81,7 @@ def three_link_manipulator(
     direct-drive torques ``(M_1, M_2, M_3)``.
     """
     return planar.chain(
-        mass, com_distance, length, inertia, gravity, names=("shoulder", "forearm", "hand")
+        mass, com_distance, length, inertia, gravity=gravity, names=("shoulder", "forearm", "hand")
     )
 
 
@@ -298,7 +298,7 @@ def vertical_line_double_pendulum(
     if L.shape != ():
         raise ValueError(f"vertical_line_double_pendulum: length must be a scalar L, got shape {L.shape}")
     system = planar.chain(
-        m, com_distance, xp.stack([L, L]), inertia, gravity, names=("link1", "link2")
+        m, com_distance, xp.stack([L, L]), inertia, gravity=gravity, names=("link1", "link2")
     )
     return VerticalLineDoublePendulum(system=system, length=jnp.asarray(L))
 

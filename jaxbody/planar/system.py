@@ -192,6 +192,7 @@ def from_parents(
     com: ParamLike,
     hinge_pos: ParamLike,
     inertia: ParamLike,
+    *,
     gravity: ParamLike = (0.0, -9.81),
     base_mass: ParamLike | None = None,
     names: Sequence[str] | None = None,
@@ -258,6 +259,7 @@ def chain(
     com_distance: ParamLike,
     length: ParamLike,
     inertia: ParamLike,
+    *,
     gravity: ParamLike = 9.81,
     names: Sequence[str] | None = None,
 ) -> PlanarSystem:
