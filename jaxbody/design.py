@@ -198,7 +198,7 @@ def _static_moments(system, q=None):
     """
     _check_system(system)
     if _is_planar(system):
-        return _planar.augmented_bodies(system).static_moment
+        return _planar.augmented_bodies_in_body_axes(system).static_moment
     from .dynamics import augmented_bodies
     from .kinematics import forward_kinematics
 
@@ -210,7 +210,7 @@ def _static_moments(system, q=None):
 def _inertia_measure(system):
     """Per body: planar ``J_k``; spatial trace of the augmented inertia (rotation invariant)."""
     if _is_planar(system):
-        return _planar.augmented_bodies(system).augmented_inertia
+        return _planar.augmented_bodies_in_body_axes(system).augmented_inertia
     from .dynamics import augmented_bodies
 
     I = augmented_bodies(system, system.qpos0).augmented_inertia
@@ -463,10 +463,10 @@ def _scale_length(system) -> np.ndarray:
         com = np.asarray(system.body_com)
         anchor = _anchor(system)
         # a child's joint anchor in the parent's frame at the reference configuration
-        from .model import quat_to_matrix_np
+        from ._util import quat_to_matrix
 
         pos, quat = np.asarray(system.body_pos), np.asarray(system.body_quat)
-        child_pts = [(system.tree.parent[j], pos[j] + quat_to_matrix_np(quat[j]) @ anchor[j])
+        child_pts = [(system.tree.parent[j], pos[j] + np.asarray(quat_to_matrix(quat[j])) @ anchor[j])
                      for j in range(n) if system.tree.parent[j] >= 0]
     L = np.linalg.norm(com - anchor, axis=1)
     for k, pt in child_pts:
@@ -905,7 +905,7 @@ def cli_balance(argv: Sequence[str] | None = None) -> int:
     mbar = np.asarray(static_moments(system), dtype=np.float64)
     from .dynamics import augmented_bodies
 
-    msub = (np.asarray(_planar.augmented_bodies(system).subtree_mass) if _is_planar(system)
+    msub = (np.asarray(_planar.augmented_bodies_in_body_axes(system).subtree_mass) if _is_planar(system)
             else np.asarray(augmented_bodies(system, system.qpos0).subtree_mass))
     must = set(required_bodies(system))
     print(f"augmented static moments of {getattr(system, 'name', type(system).__name__)} "
