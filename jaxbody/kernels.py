@@ -49,6 +49,7 @@ from .kinematics import (
     reference_point,
     rigid_body_kinetic_energy,
 )
+from .joints import SLIDE
 from .linalg import solve_spd
 from .model import Model
 from .spatial import ForceFactors, relative_force_factors
@@ -123,42 +124,54 @@ def force_factors(
     a: Float[ArrayLike, " nv"],
     *,
     external: Float[ArrayLike, "n_body 6"] | None = None,
+    gravity: bool = True,
 ) -> ForceFactors:
     """Statement 1 at ``(q, v, a)``: relative force factors of every body (spec eqs 1–4).
 
     ``force``/``moment`` are what the parent (ground for roots) exerts on body ``k`` at
-    ``O_0k``: constraint reaction plus drive.
+    ``O_0k``: constraint reaction plus drive. ``gravity=False`` leaves the model's gravity
+    out of the program (scenes declare gravity as an effect of their own). Terms that the
+    model's joints make identically zero are left out when the program is traced: the
+    relative motion of poles without slides or bodies with several joints, the carrier
+    acceleration without a free joint.
     """
     tree = model.tree
     a = check_shape(a, (model.nv,), "a", dtype=data.com.dtype)
     aug = data.augmented
     motion = body_accelerations(model, data, data.v, a)
-    par = tree.parent_array
-    has_parent = jnp.asarray(par >= 0)[:, None]
-    pidx = np.maximum(par, 0)
-    free = np.asarray(model.joints.body_is_free, dtype=bool)[:, None]
-    zero = jnp.zeros_like(data.base_point)
-    # motion of the parent's material point at O_0k (ground: at rest)
-    parent_motion = jax.tree.map(lambda x: x[pidx], motion)
-    vp = jnp.where(has_parent, point_velocity(parent_motion, data.base_point), 0.0)
-    ap = jnp.where(has_parent, point_acceleration(parent_motion, data.base_point), 0.0)
     w, e = motion.angular_velocity, motion.angular_acceleration
-    # Relative motion of the pole O_k with respect to O_0k, derivatives taken in body-k axes
-    # (spec §2 remark): remove the rigid-body part ω×ρ from the world-frame derivatives.
-    rho = data.pole - data.base_point
-    rho_dot = point_velocity(motion, data.pole) - vp
-    rho_ddot = point_acceleration(motion, data.pole) - ap
-    Vr = rho_dot - jnp.cross(w, rho)
-    Wr = rho_ddot - jnp.cross(e, rho) - jnp.cross(w, rho_dot) - jnp.cross(w, Vr)
-    # A free body's base point is the origin of a translating carrier frame (Cor. 1): its
-    # motion enters as the root acceleration W_0, not as a relative motion.
-    Vr = jnp.where(free, 0.0, Vr)
-    Wr = jnp.where(free, 0.0, Wr)
-    W_root = jnp.where(free, point_acceleration(motion, data.base_point), zero)
+    joints = model.joints
+    Vr = Wr = W_root = None
+    # Only slides, or a second joint of a body turning it about another anchor, move a pole
+    # off its base point; otherwise V_r = W_r = 0 identically and the terms are left out.
+    if SLIDE in joints.type or max(joints.body_joint_count, default=0) > 1:
+        par = tree.parent_array
+        has_parent = jnp.asarray(par >= 0)[:, None]
+        # motion of the parent's material point at O_0k (ground: at rest)
+        parent_motion = jax.tree.map(lambda x: x[np.maximum(par, 0)], motion)
+        vp = jnp.where(has_parent, point_velocity(parent_motion, data.base_point), 0.0)
+        ap = jnp.where(has_parent, point_acceleration(parent_motion, data.base_point), 0.0)
+        # Relative motion of the pole O_k with respect to O_0k, derivatives taken in body-k
+        # axes (spec §2 remark): remove the rigid-body part ω×ρ from the world-frame
+        # derivatives.
+        rho = data.pole - data.base_point
+        rho_dot = point_velocity(motion, data.pole) - vp
+        rho_ddot = point_acceleration(motion, data.pole) - ap
+        Vr = rho_dot - jnp.cross(w, rho)
+        Wr = rho_ddot - jnp.cross(e, rho) - jnp.cross(w, rho_dot) - jnp.cross(w, Vr)
+    if any(joints.body_is_free):
+        # A free body's base point is the origin of a translating carrier frame (Cor. 1): its
+        # motion enters as the root acceleration W_0, not as a relative motion.
+        free = np.asarray(joints.body_is_free, dtype=bool)[:, None]
+        if Vr is not None:
+            Vr = jnp.where(free, 0.0, Vr)
+            Wr = jnp.where(free, 0.0, Wr)
+        W_root = jnp.where(free, point_acceleration(motion, data.base_point), 0.0)
     Fr, Mr = _external_loads(model, data, external)
+    g = model.gravity if gravity else None
     return relative_force_factors(
         tree, aug.subtree_mass, aug.static_moment, aug.augmented_inertia, data.link,
-        w, e, Vr, Wr, W_root, model.gravity, Fr, Mr,
+        w, e, Vr, Wr, W_root, g, Fr, Mr,
     )
 
 
@@ -171,9 +184,12 @@ def _project(model: Model, data: Data, factors: ForceFactors):
     return jnp.sum(factors.force[k] * vel, axis=-1) + jnp.sum(factors.moment[k] * ang, axis=-1)
 
 
-def bias_forces(model: Model, data: Data) -> Float[Array, " nv"]:
-    """Coriolis, centrifugal and gravity forces (MuJoCo ``qfrc_bias``): ``tau`` at ``a = 0``."""
-    return _project(model, data, force_factors(model, data, jnp.zeros_like(data.v)))
+def bias_forces(model: Model, data: Data, *, gravity: bool = True) -> Float[Array, " nv"]:
+    """Coriolis, centrifugal and gravity forces (MuJoCo ``qfrc_bias``): ``tau`` at ``a = 0``.
+
+    ``gravity=False``: the velocity-product terms alone (gravity left out of the program).
+    """
+    return _project(model, data, force_factors(model, data, jnp.zeros_like(data.v), gravity=gravity))
 
 
 def inverse_dynamics(

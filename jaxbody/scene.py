@@ -59,8 +59,7 @@ def _concrete(*xs) -> bool:
 def _spatial_mass_and_bias(model: Model, data, v):
     from .kernels import bias_forces, mass_matrix
 
-    no_gravity = eqx.tree_at(lambda m: m.gravity, model, jnp.zeros(3, model.gravity.dtype))
-    return mass_matrix(model, data), bias_forces(no_gravity, data)
+    return mass_matrix(model, data), bias_forces(model, data, gravity=False)
 
 
 def _planar_from_model(model: Model, gravity=None, tol: float = 1e-9):

@@ -59,9 +59,9 @@ def base_point_acceleration(
     link: Float[ArrayLike, "n_body 3"],
     angular_velocity: Float[ArrayLike, "n_body 3"],
     angular_acceleration: Float[ArrayLike, "n_body 3"],
-    relative_velocity: Float[ArrayLike, "n_body 3"],
-    relative_acceleration: Float[ArrayLike, "n_body 3"],
-    root_acceleration: Float[ArrayLike, "n_body 3"],
+    relative_velocity: Float[ArrayLike, "n_body 3"] | None,
+    relative_acceleration: Float[ArrayLike, "n_body 3"] | None,
+    root_acceleration: Float[ArrayLike, "n_body 3"] | None,
 ) -> Float[Array, "n_body 3"]:
     """Acceleration of every base point, eq. (3).
 
@@ -72,15 +72,17 @@ def base_point_acceleration(
     par = tree.parent_array
     p = np.maximum(par, 0)
     w, e = angular_velocity[p], angular_acceleration[p]
-    term = (
-        relative_acceleration[p]
-        + 2.0 * _cross(w, relative_velocity[p])
-        + _cross(e, link)
-        + _cross(w, _cross(w, link))
-    )
+    term = _cross(e, link) + _cross(w, _cross(w, link))
+    # None = identically zero, known when the model is built (no slide joints: poles stay
+    # on their base points; no free joint: every root hangs on the fixed ground), so the
+    # terms are left out of the program instead of being multiplied by zero.
+    if relative_velocity is not None:
+        term = term + relative_acceleration[p] + 2.0 * _cross(w, relative_velocity[p])
     term = jnp.where(jnp.asarray(par >= 0)[:, None], term, 0.0)
-    roots = np.asarray(tree.root, dtype=np.int32)
-    return root_acceleration[roots] + tree.path_sum(term)
+    W0 = tree.path_sum(term)
+    if root_acceleration is not None:
+        W0 = W0 + root_acceleration[np.asarray(tree.root, dtype=np.int32)]
+    return W0
 
 
 def relative_inertial_force(
@@ -89,16 +91,14 @@ def relative_inertial_force(
     static_moment: Float[ArrayLike, "n_body 3"],
     angular_velocity: Float[ArrayLike, "n_body 3"],
     angular_acceleration: Float[ArrayLike, "n_body 3"],
-    relative_velocity: Float[ArrayLike, "n_body 3"],
-    relative_acceleration: Float[ArrayLike, "n_body 3"],
+    relative_velocity: Float[ArrayLike, "n_body 3"] | None,
+    relative_acceleration: Float[ArrayLike, "n_body 3"] | None,
 ) -> Float[Array, "n_body 3"]:
     """Inertial force of subsystem ``k`` due to motion relative to ``O_0k``, eq. (4)."""
     w = angular_velocity
-    per_body = (
-        subtree_mass[:, None] * (relative_acceleration + 2.0 * _cross(w, relative_velocity))
-        + _cross(angular_acceleration, static_moment)
-        + _cross(w, _cross(w, static_moment))
-    )
+    per_body = _cross(angular_acceleration, static_moment) + _cross(w, _cross(w, static_moment))
+    if relative_velocity is not None:  # None: no relative motion (see base_point_acceleration)
+        per_body = per_body + subtree_mass[:, None] * (relative_acceleration + 2.0 * _cross(w, relative_velocity))
     return tree.subtree_sum(per_body)
 
 
@@ -110,10 +110,10 @@ def relative_force_factors(
     link: Float[ArrayLike, "n_body 3"],
     angular_velocity: Float[ArrayLike, "n_body 3"],
     angular_acceleration: Float[ArrayLike, "n_body 3"],
-    relative_velocity: Float[ArrayLike, "n_body 3"],
-    relative_acceleration: Float[ArrayLike, "n_body 3"],
-    root_acceleration: Float[ArrayLike, "n_body 3"],
-    gravity: Float[ArrayLike, "3"],
+    relative_velocity: Float[ArrayLike, "n_body 3"] | None,
+    relative_acceleration: Float[ArrayLike, "n_body 3"] | None,
+    root_acceleration: Float[ArrayLike, "n_body 3"] | None,
+    gravity: Float[ArrayLike, "3"] | None,
     external_force: Float[ArrayLike, "n_body 3"] | None = None,
     external_moment: Float[ArrayLike, "n_body 3"] | None = None,
 ) -> ForceFactors:
@@ -128,29 +128,35 @@ def relative_force_factors(
     so ``M_k = sum_{i in S(k)} X_i`` (subtree sum instead of a leaves-first recursion).
 
     Args:
+        relative_velocity, relative_acceleration: ``V_rk``, ``W_rk``; ``None`` when no body
+            moves relative to its base point (no slide joints).
+        root_acceleration: ``W_0`` of each root's carrier; ``None`` for the fixed ground.
+        gravity: ``g``; ``None`` leaves gravity out.
         external_force, external_moment: ``F_rk`` and ``M_rk`` (moment about ``O_0k``) of
-            loads other than gravity; zero when omitted.
+            loads other than gravity; ``None`` when there are none.
     """
-    dtype = static_moment.dtype
-    if external_force is None:
-        external_force = jnp.zeros_like(static_moment)
-    if external_moment is None:
-        external_moment = jnp.zeros_like(static_moment)
     w, e = angular_velocity, angular_acceleration
     Vr, Wr = relative_velocity, relative_acceleration
     W0 = base_point_acceleration(tree, link, w, e, Vr, Wr, root_acceleration)
     Fe = relative_inertial_force(tree, subtree_mass, static_moment, w, e, Vr, Wr)
-    Fr_sub = tree.subtree_sum(external_force)
-    g = jnp.asarray(gravity, dtype)
-    F = subtree_mass[:, None] * (W0 - g) + Fe - Fr_sub
+    # Every optional term (relative motion, gravity, loads) that is None is absent from the
+    # program, not multiplied by zero: a scene that declares no gravity or no loads pays nothing.
+    lin = W0 if gravity is None else W0 - jnp.asarray(gravity, static_moment.dtype)
+    F = subtree_mass[:, None] * lin + Fe
+    Fs = Fe
+    if external_force is not None:
+        Fr_sub = tree.subtree_sum(external_force)
+        F, Fs = F - Fr_sub, Fe - Fr_sub
+    lever = lin if Vr is None else lin + Wr + 2.0 * _cross(w, Vr)
     Iw = jnp.einsum("nij,nj->ni", augmented_inertia, w)
     X = (
-        _cross(static_moment, W0 + Wr + 2.0 * _cross(w, Vr) - g)
+        _cross(static_moment, lever)
         + jnp.einsum("nij,nj->ni", augmented_inertia, e)
         + _cross(w, Iw)
-        + tree.children_sum(_cross(link, Fe - Fr_sub))
-        - external_moment
+        + tree.children_sum(_cross(link, Fs))
     )
+    if external_moment is not None:
+        X = X - external_moment
     M = tree.subtree_sum(X)
     return ForceFactors(force=F, moment=M, base_point_acceleration=W0, inertial_force=Fe)
 
@@ -206,9 +212,8 @@ def absolute_bias(
     ``b_k = m̄_k × sum_{i in C(k)} ω_i×(ω_i×R_c(i,k)) + ω_k×I_k ω_k
     + sum_{j in A(k)} R_j × sum_{i in S(j)} ω_i×(ω_i×m̄_i) - m̄_k×g``.
     """
-    zero = jnp.zeros_like(static_moment)
     w = angular_velocity
-    W0 = base_point_acceleration(tree, link, w, zero, zero, zero, zero)
+    W0 = base_point_acceleration(tree, link, w, jnp.zeros_like(static_moment), None, None, None)
     cen = tree.subtree_sum(_cross(w, _cross(w, static_moment)))
     Iw = jnp.einsum("nij,nj->ni", augmented_inertia, w)
     return (

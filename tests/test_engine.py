@@ -281,3 +281,43 @@ def test_vmap_chunked_compiles_once():
     g(jnp.ones(8))
     g(jnp.ones(8) * 3)
     assert len(traces) == 1
+
+
+def _explicit_zero_bias(model, data):
+    """Statement 1 at a = 0 with every optional term passed as explicit zero arrays."""
+    from jaxbody.kinematics import body_accelerations
+
+    motion = body_accelerations(model, data, data.v, jnp.zeros_like(data.v))
+    zero = jnp.zeros_like(data.base_point)
+    aug = data.augmented
+    f = jb.spatial.relative_force_factors(
+        model.tree, aug.subtree_mass, aug.static_moment, aug.augmented_inertia, data.link,
+        motion.angular_velocity, motion.angular_acceleration, zero, zero, zero, model.gravity, zero, zero,
+    )
+    return jb.kernels._project(model, data, f)
+
+
+def test_terms_the_joints_make_zero_are_left_out_of_the_program():
+    """Without slides, bodies with several joints or a free joint, the relative pole motion
+    and the carrier acceleration are identically zero: the kernel leaves them out of the
+    traced program (fewer equations) and gives the same bias as the explicit-zero path;
+    ``gravity=False`` drops gravity from the program too."""
+    model = hinge_chain(6)
+    q, v, _ = random_state(model, 3)
+    data = jb.compute_data(model, q, v)
+    bias = jb.kernels.bias_forces(model, data)
+    np.testing.assert_allclose(bias, _explicit_zero_bias(model, data), rtol=1e-12, atol=1e-12)
+
+    def count(f):
+        return len(jax.make_jaxpr(f)(q, v).jaxpr.eqns)
+
+    specialised = count(lambda q, v: jb.kernels.bias_forces(model, jb.compute_data(model, q, v)))
+    explicit = count(lambda q, v: _explicit_zero_bias(model, jb.compute_data(model, q, v)))
+    no_gravity = count(lambda q, v: jb.kernels.bias_forces(model, jb.compute_data(model, q, v), gravity=False))
+    assert specialised < explicit
+    assert no_gravity < specialised
+    # gravity=False is the bias of the same model with zero gravity
+    zero_g = eqx.tree_at(lambda m: m.gravity, model, jnp.zeros(3))
+    np.testing.assert_allclose(
+        jb.kernels.bias_forces(model, data, gravity=False), jb.kernels.bias_forces(zero_g, data), rtol=1e-12, atol=1e-12
+    )

@@ -253,8 +253,7 @@ def _force_factors(system, q, v, a, external_force=None, external_moment=None):
     n = system.n_body
     _, w = _split(system, v)
     ab, e = _split(system, a)
-    W0 = ab if system.translating_base else jnp.zeros((2,), kin.theta.dtype)
-    zero = jnp.zeros((n, 3), kin.theta.dtype)
+    W0 = jnp.broadcast_to(plane3(ab), (n, 3)) if system.translating_base else None
     kk = jnp.zeros((3, 3), kin.theta.dtype).at[2, 2].set(1.0)
     return relative_force_factors(
         system.tree,
@@ -264,9 +263,9 @@ def _force_factors(system, q, v, a, external_force=None, external_moment=None):
         plane3(kin.link),
         axial3(w),
         axial3(e),
-        zero,
-        zero,
-        jnp.broadcast_to(plane3(W0), (n, 3)),
+        None,
+        None,
+        W0,
         plane3(system.gravity),
         plane3(F),
         axial3(Mr),
