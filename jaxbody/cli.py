@@ -405,10 +405,10 @@ def _simulate_chunk(system, q, v, ts, args):
 
 
 def _result_message(result) -> str:
-    import diffrax
+    import jaxbody as jb
 
     try:
-        return diffrax.RESULTS[result]
+        return jb.RESULTS[result]
     except Exception:  # pragma: no cover - message lookup is best effort
         return str(result)
 
@@ -596,9 +596,9 @@ def _simulate(args) -> int:
 
 
 def _successful():
-    import diffrax
+    import jaxbody as jb
 
-    return diffrax.RESULTS.successful
+    return jb.RESULTS.successful
 
 
 class _NoBar:
