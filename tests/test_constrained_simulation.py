@@ -26,7 +26,9 @@ from jaxbody.examples import disk as dk
 sys.path.insert(0, str(Path(__file__).parent))
 from test_constraints import example5, four_bar, four_bar_angles, four_bar_newton_euler, four_bar_rates  # noqa: E402
 
-KW = dict(n_save=11, rtol=1e-10, atol=1e-10)  # shared, so the compiled solves are reused
+# shared by the four-bar tests, so one compiled solve serves them (forward-mode adjoint: the
+# gradient test takes jax.jacfwd through the solve)
+KW = dict(n_save=11, rtol=1e-10, atol=1e-10, adjoint="forward")
 T1 = 1.0
 
 
@@ -63,7 +65,13 @@ def test_four_bar_scene_reactions_and_residuals(four_bar_scene, four_bar_run):
         th = np.array([q[0], q[0] + q[1], q[2]])
         w = np.array([v[0], v[0] + v[1], v[2]])
         np.testing.assert_allclose(lam, four_bar_newton_euler(th, w)[7:9], rtol=1e-7, atol=1e-7)
-    # the scene path (gravity as a declared effect) and the ConstrainedSystem itself agree
+
+
+@pytest.mark.slow
+def test_four_bar_scene_equals_constrained_system(four_bar_run):
+    """The scene path (gravity a declared effect, M and f from the scene) and the
+    ConstrainedSystem itself (its ModelBase bracket) integrate the same motion."""
+    sol = four_bar_run
     direct = jb.simulate(four_bar(), sol.q[0], sol.v[0], T1, **KW)
     np.testing.assert_allclose(direct.q, sol.q, atol=1e-9)
     np.testing.assert_allclose(direct.reactions, sol.reactions, rtol=1e-7, atol=1e-8)
@@ -95,30 +103,23 @@ def test_loop_reaction_gradient_wrt_link_mass_through_the_solve(four_bar_scene):
         return jb.simulate(sc, q0, v0, t1, **KW).reactions[-1, 0]
 
     m = 1.2
-    g = float(jax.grad(final_reaction)(m))
+    g = float(jax.jacfwd(final_reaction)(m))
     h = 1e-3
     fd = (float(final_reaction(m + h)) - float(final_reaction(m - h))) / (2 * h)
     assert abs(g) > 1e-2
     np.testing.assert_allclose(g, fd, rtol=1e-5)
 
 
-def test_example5_scene_with_point_on_line():
-    """Example 5 with the end on the vertical written as a point on a line (x-z plane motion:
-    one row across the line in the plane, one along y that the hinges satisfy identically is
-    redundant, so the in-plane PointOnPlane is the independent one); through the scene it
-    matches the ConstrainedSystem of the Maggi layer."""
-    cs = example5()
-    model = cs.base.model
-    sc = jb.scene(model, constraints=cs)
-    q0, v0 = jnp.array([0.5, -1.0]), jnp.array([1.1, -2.2])
-    sol = jb.simulate(sc, q0, v0, 0.5, n_save=6, rtol=1e-10, atol=1e-10)
-    np.testing.assert_allclose(sol.reactions[0, 0], -1.47047546454, rtol=1e-9)  # spec table T-7
-    np.testing.assert_allclose(sol.q[:, 1], -2 * sol.q[:, 0], atol=1e-9)
-    # a point on a line has two rows; the one normal to the plane of motion is redundant
+def test_example5_point_on_line_is_redundant_in_the_plane():
+    """Example 5 (simulated through the slot in test_scene) written as a point on the vertical
+    line: of its two rows, the one normal to the plane of motion is satisfied by the hinges
+    identically, so the scene names it redundant (the in-plane PointOnPlane is the one to use)."""
+    model = example5().base.model
     with pytest.raises(ValueError, match="redundant"):
         jb.scene(model, constraints=[jc.PointOnLine(model, "link2", (0, 0, -0.8), direction=(0, 0, 1))])
 
 
+@pytest.mark.slow  # ~20 s (two compilations of the disk's autodiff bracket)
 def test_rolling_disk_through_simulate_and_simulate_batch():
     cs = dk.rolling_disk()
     rho = float(cs.base.radius)
