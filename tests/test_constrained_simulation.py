@@ -45,6 +45,11 @@ def four_bar_scene():
 
 
 @pytest.fixture(scope="module")
+def ex5():
+    return example5()
+
+
+@pytest.fixture(scope="module")
 def four_bar_run(four_bar_scene):
     q0, v0 = four_bar_state(0.6, 2.0)
     return jb.simulate(four_bar_scene, q0, v0, T1, **KW)
@@ -110,11 +115,11 @@ def test_loop_reaction_gradient_wrt_link_mass_through_the_solve(four_bar_scene):
     np.testing.assert_allclose(g, fd, rtol=1e-5)
 
 
-def test_example5_point_on_line_is_redundant_in_the_plane():
+def test_example5_point_on_line_is_redundant_in_the_plane(ex5):
     """Example 5 (simulated through the slot in test_scene) written as a point on the vertical
     line: of its two rows, the one normal to the plane of motion is satisfied by the hinges
     identically, so the scene names it redundant (the in-plane PointOnPlane is the one to use)."""
-    model = example5().base.model
+    model = ex5.base.model
     with pytest.raises(ValueError, match="redundant"):
         jb.scene(model, constraints=[jc.PointOnLine(model, "link2", (0, 0, -0.8), direction=(0, 0, 1))])
 
@@ -155,7 +160,7 @@ def test_solution_file_keeps_residuals_and_reactions(four_bar_run, tmp_path):
     assert dict(back.layout)["constraint_names"] == dict(four_bar_run.layout)["constraint_names"]
 
 
-def test_constraint_slot_errors(four_bar_scene):
+def test_constraint_slot_errors(four_bar_scene, ex5):
     model = four_bar_scene.system
     loop = four_bar().constraints[0]
     # at qpos0 the four-bar lies along x: the x row of the loop is redundant there
@@ -166,4 +171,4 @@ def test_constraint_slot_errors(four_bar_scene):
     with pytest.raises(ValueError, match="lacks accelerations, drift"):
         jb.scene(model, constraints=object())
     with pytest.raises(ValueError, match=r"\(nq, nv\) = \(2, 2\)"):
-        jb.scene(model, constraints=example5())
+        jb.scene(model, constraints=ex5)
