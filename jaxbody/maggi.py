@@ -457,8 +457,12 @@ class ConstrainedSystem(eqx.Module):
         return _solve_jit(self, t, q, x, tau, stabilise)
 
     def _solve(self, t, q, x, tau, stabilise) -> MaggiSolution:
-        n, s = self.nv, self.n_constraint
         D, h = self.base.bracket_terms(t, q, x, tau)
+        return self._reduce(t, q, x, D, h, stabilise)
+
+    def _reduce(self, t, q, x, D, h, stabilise) -> MaggiSolution:
+        """M.11–M.12 from the bracket terms ``(D, h)`` (given by the base system, or by a scene)."""
+        n, s = self.nv, self.n_constraint
         A, K, ratio = self.parametrisation(t, q, x)
         if s:
             qd = self.base.qdot(q, x)
@@ -493,6 +497,41 @@ class ConstrainedSystem(eqx.Module):
             xdot=xdot, epsilon_dot=eps_dot, reactions=reactions, A=A, K=K, bracket=bracket,
             pivot_ratio=ratio, result=result,
         )
+
+    # -- the constraint slot of a scene (jaxbody.effects.Constraint) --------------------
+    def _on_scene(self, ctx) -> "ConstrainedSystem":
+        """This system with the scene's model as base, so that the scene's parameters (not
+        a copy made when the constraints were built) are the ones evaluated and differentiated."""
+        from .model import Model
+
+        model = getattr(ctx.scene, "system", None)
+        if isinstance(self.base, ModelBase) and isinstance(model, Model) and model is not self.base.model:
+            return ConstrainedSystem(
+                base=ModelBase(model), constraints=self.constraints, epsilon=self.epsilon, free=self.free,
+                baumgarte=self.baumgarte,
+            )
+        return self
+
+    def accelerations(self, ctx, mass_matrix, force) -> tuple[Array, Array]:
+        """Scene protocol: ``(a, Λ)`` for ``M·a = force + GᵀΛ`` with the constraints.
+
+        The scene gives the mass matrix ``D = M`` and the right-hand side ``force`` (its
+        declared effects minus the velocity terms), so the bracket is ``𝓔 = M·a − force``;
+        ``a`` solves M.11 with the Baumgarte terms, ``Λ = Kᵀ𝓔`` (M.12) is the reaction of each
+        constraint row as written (:attr:`constraint_names`).
+        """
+        v = jnp.asarray(ctx.v)
+        t = jnp.asarray(ctx.t, v.dtype)
+        r = self._on_scene(ctx)._reduce(t, ctx.q, v, mass_matrix, -force, True)
+        return r.xdot, r.reactions
+
+    def drift(self, ctx) -> tuple[Array, Array]:
+        """Scene protocol: ``(φ(t, q), f*(t, q, x))``, the position residuals of the holonomic
+        rows (zero on the others) and the velocity residuals of all rows, each (s,)."""
+        v = jnp.asarray(ctx.v)
+        t = jnp.asarray(ctx.t, v.dtype)
+        sys = self._on_scene(ctx)
+        return sys.position_residual(t, ctx.q), sys.constraint_residual(t, ctx.q, v)
 
     def kinetic_metric(self, t, q, x) -> Array:
         """``D(q)``: the mass matrix in quasi-velocities."""

@@ -141,7 +141,9 @@ class Scene(eqx.Module):
     Attributes:
         system: the mechanism (:class:`jaxbody.Model`, planar system or protocol object).
         effects: declared effects, in the order given.
-        constraints: an object with the :class:`jaxbody.effects.Constraint` protocol, or ``None``.
+        constraints: an object with the :class:`jaxbody.effects.Constraint` protocol (a
+            :class:`jaxbody.maggi.ConstrainedSystem`), or ``None``. On the ``"system"`` path it
+            is the system itself when that is a ``ConstrainedSystem``.
         planar: the absolute-angle system of the planar path (``None`` on other paths).
         plane: rows ``(e1, e2)`` of the plane of motion in world axes (planar path).
         axis_sign: sense ``±1`` of each hinge about the plane normal (planar path).
@@ -269,8 +271,9 @@ class Scene(eqx.Module):
         return qpos_rate(self.system, q, v)
 
     def evaluate(self, t, q, v, tau=None):
-        """``(a, powers, reaction)``: accelerations, the power ``f_e·v`` of every effect named in
-        :attr:`work_names`, and the generalized constraint reaction (``None`` without constraints).
+        """``(a, powers, reactions)``: accelerations, the power ``f_e·v`` of every effect named in
+        :attr:`work_names`, and the constraint reactions ``Λ`` (one per constraint row, ``M a =
+        f + GᵀΛ``; ``None`` without constraints).
 
         ``tau`` is an extra generalized force (counted in the actuation work when present).
         """
@@ -280,12 +283,16 @@ class Scene(eqx.Module):
             total = None
             for f in forces + ([] if tau is None else [tau]):
                 total = f if total is None else total + f
-            a = self.system.acceleration(t, q, v, total)
+            if self.constraints is not None:  # a constrained system: reactions come with a
+                r = self.system.solve(t, q, v, total, stabilise=True)
+                a, reaction = r.xdot, r.reactions
+            else:
+                a, reaction = self.system.acceleration(t, q, v, total), None
             if hasattr(self.system, "power"):
                 powers = (self.system.power(t, q, v, total),)
             else:
                 powers = tuple(jnp.dot(f, v) for e, f in zip(self.effects, forces) if not e.conservative)
-            return a, powers, None
+            return a, powers, reaction
         powers = [jnp.dot(f, v) for e, f in zip(self.effects, forces) if not e.conservative]
         if tau is not None and "actuation" in self.work_names:
             i = self.work_names.index("actuation")
@@ -353,10 +360,11 @@ class Scene(eqx.Module):
             return self.system.total_energy(q, v)
         return self.kinetic_energy(q, v) + self.potential_energy(q)
 
-    def constraint_drift(self, q, v):
+    def constraint_drift(self, t, q, v):
+        """``(position, velocity)`` residuals of the constraints at ``(t, q, v)`` (``None`` without)."""
         if self.constraints is None:
             return None
-        return self.constraints.drift(self.context(jnp.zeros((), q.dtype), q, v))
+        return self.constraints.drift(self.context(jnp.asarray(t, v.dtype), q, v))
 
     def __repr__(self):
         return f"Scene({type(self.system).__name__}, path={self.path!r}, effects={list(self.effect_names)})"
@@ -400,7 +408,12 @@ def scene(
             :class:`~jaxbody.effects.BodyLoads`.
         support: prescribed support translation ``s(t) -> (3,)`` or a
             :class:`~jaxbody.effects.SupportMotion`; the state is then relative to the support.
-        constraints: an object with the :class:`~jaxbody.effects.Constraint` protocol.
+        constraints: the Maggi layer: a :class:`jaxbody.maggi.ConstrainedSystem` built on this
+            model (``jaxbody.maggi.constrain(model, [...], q_ref=...)``), or a sequence of
+            :class:`jaxbody.maggi.Constraint` (e.g. from :mod:`jaxbody.constraints`), then
+            built at ``q_ref = model.qpos0``; or any object with the
+            :class:`~jaxbody.effects.Constraint` protocol. A ``ConstrainedSystem`` passed as
+            ``system`` brings its own constraints.
         effects: further effect modules (contact, limits, ...), appended in order.
         planar: ``None`` chooses the planar absolute-angle path when the model allows it;
             ``False`` forces the spatial path; ``True`` requires the planar path.
@@ -430,13 +443,14 @@ def scene(
         if actuation is not None:
             declared.append(_actuation(actuation))
         declared.extend(effects)
-        out = Scene(system=system, effects=tuple(declared), path="system")
+        out = Scene(system=system, effects=tuple(declared), constraints=_own_constraints(system), path="system")
         for e in out.effects:
             e.check(out)
         return out
 
     model = system
     dtype = model.body_pos.dtype
+    constraints = _constraint_slot(model, constraints)
     # gravity
     if gravity is True or (isinstance(gravity, str) and gravity == "model"):
         if not _concrete(model.gravity) or np.any(np.asarray(model.gravity) != 0) or gravity is True:
@@ -489,6 +503,51 @@ def scene(
     for e in out.effects:
         e.check(out)
     return out
+
+
+def _own_constraints(system):
+    """A :class:`jaxbody.maggi.ConstrainedSystem` is its own constraint slot (``"system"`` path)."""
+    from .maggi import ConstrainedSystem
+
+    return system if isinstance(system, ConstrainedSystem) else None
+
+
+def _constraint_slot(model: Model, constraints):
+    """Validate the ``constraints`` argument of :func:`scene` (a sequence of Maggi constraints
+    is built into a ``ConstrainedSystem`` at ``model.qpos0``)."""
+    from . import maggi
+
+    if constraints is None or constraints is False:
+        return None
+    if isinstance(constraints, maggi.Constraint):
+        constraints = (constraints,)
+    if isinstance(constraints, (tuple, list)):
+        try:
+            constraints = maggi.constrain(model, constraints, q_ref=model.qpos0)
+        except ValueError as err:
+            raise ValueError(
+                f"scene: constraints: {err} (they were checked at model.qpos0; pass "
+                "jaxbody.maggi.constrain(model, [...], q_ref=<an admissible q>) instead)"
+            ) from None
+    missing = [n for n in ("accelerations", "drift") if not callable(getattr(constraints, n, None))]
+    if missing:
+        raise ValueError(
+            f"scene: constraints must be a jaxbody.maggi.ConstrainedSystem, a sequence of "
+            f"jaxbody.maggi.Constraint or an object with accelerations and drift; "
+            f"{type(constraints).__name__} lacks {', '.join(missing)}"
+        )
+    if isinstance(constraints, maggi.ConstrainedSystem):
+        if not isinstance(constraints.base, maggi.ModelBase):
+            raise ValueError(
+                f"scene: constraints are built on a {type(constraints.base).__name__}, not on a "
+                "jaxbody.Model; simulate that ConstrainedSystem directly"
+            )
+        if (constraints.nq, constraints.nv) != (model.nq, model.nv):
+            raise ValueError(
+                f"scene: constraints are built on a model with (nq, nv) = ({constraints.nq}, "
+                f"{constraints.nv}), the scene's has ({model.nq}, {model.nv})"
+            )
+    return constraints
 
 
 def _actuation(actuation) -> Actuation:

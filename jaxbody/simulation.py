@@ -199,8 +199,13 @@ class Solution(eqx.Module):
         energy_drift: ``max_t |E(t) − E(t0) − Σ work(t)| / max(|E(t0)|, tiny)``: how far the energy
             balance is from closing (a check of the integration, meaningful with damping and
             actuation too); ``None`` without energy.
-        constraint_drift: constraint violation at the saved times ``(n_save, m)`` or ``None``.
-        reactions: generalized constraint reactions ``(n_save, nv)`` or ``None``.
+        constraint_drift: constraint residuals at the saved times, ``{"position": (n_save, s),
+            "velocity": (n_save, s)}`` (position residuals ``φ(t, q)`` of the holonomic rows, zero
+            on non-holonomic rows; velocity residuals ``f*(t, q, v)`` of every row), or ``None``
+            without constraints.
+        reactions: constraint reactions ``Λ`` at the saved times ``(n_save, s)``, one column per
+            constraint row (``layout`` lists their names under ``"constraint_names"``; forces in
+            newtons for the point constraints of :mod:`jaxbody.constraints`), or ``None``.
         stats: ``num_steps``, ``num_accepted_steps``, ``num_rejected_steps``.
         result: a :class:`RESULTS` code (``successful``; ``event_occurred`` when an event ended
             the solve; a failure code otherwise).
@@ -285,7 +290,8 @@ class Solution(eqx.Module):
         for k, s in self.stats.items():
             arrays[f"stats/{k}"] = np.asarray(s)
         if self.constraint_drift is not None:
-            arrays["constraint_drift"] = np.asarray(self.constraint_drift)
+            for k, r in self.constraint_drift.items():
+                arrays[f"constraint_drift/{k}"] = np.asarray(r)
         if self.reactions is not None:
             arrays["reactions"] = np.asarray(self.reactions)
         with open(path, "wb") as fh:
@@ -323,7 +329,7 @@ def load_solution(path) -> Solution:
         energy=jnp.asarray(d["energy"]) if "energy" in d else None,
         work=work,
         energy_drift=jnp.asarray(d["energy_drift"]) if "energy_drift" in d else None,
-        constraint_drift=jnp.asarray(d["constraint_drift"]) if "constraint_drift" in d else None,
+        constraint_drift={k[17:]: jnp.asarray(v) for k, v in d.items() if k.startswith("constraint_drift/")} or None,
         reactions=jnp.asarray(d["reactions"]) if "reactions" in d else None,
         stats=stats,
         result=result,
@@ -347,6 +353,12 @@ def _balance(energy, work):
 
 
 def _layout(system) -> tuple:
+    names = getattr(getattr(system, "constraints", None), "constraint_names", None)
+    extra = (("constraint_names", tuple(names)),) if names is not None else ()
+    return tuple(sorted(_layout_of(system) + extra))
+
+
+def _layout_of(system) -> tuple:
     from .model import Model
 
     if isinstance(system, Scene):
@@ -453,7 +465,9 @@ def _as_scene(system, tau):
                 f"simulate needs a jaxbody.Scene, a jaxbody.Model or a system with nq, nv, qdot and acceleration "
                 f"(see jaxbody.simulation.DynamicalSystem); {type(system).__name__} lacks {', '.join(missing)}"
             )
-        system = Scene(system=system, effects=(), path="system")
+        from .scene import _own_constraints
+
+        system = Scene(system=system, effects=(), constraints=_own_constraints(system), path="system")
     if tau is None:
         return system
     if not callable(tau):
@@ -749,10 +763,17 @@ def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps,
         qs, vs = q, v
     cdrift = reactions = None
     if scene.constraints is not None:
-        cdrift = jnp.where(finite[:, None], jax.vmap(scene.constraint_drift)(qs, vs), jnp.nan)
-        reactions = jnp.where(
-            finite[:, None], jax.vmap(lambda tt, a, b: scene.evaluate(tt, a, b)[2])(jnp.where(finite, ts, t0), qs, vs), jnp.nan
-        )
+        # constraint residuals and reactions at the saved states (padding entries: NaN)
+        if not scene.has_energy:
+            qs = jnp.where(finite[:, None], q, y0[0])
+            vs = jnp.where(finite[:, None], v, y0[1])
+        t_safe = jnp.where(finite, ts, t0)
+        pos, vel = jax.vmap(scene.constraint_drift)(t_safe, qs, vs)
+        cdrift = {
+            "position": jnp.where(finite[:, None], pos, jnp.nan),
+            "velocity": jnp.where(finite[:, None], vel, jnp.nan),
+        }
+        reactions = jnp.where(finite[:, None], jax.vmap(lambda tt, a, b: scene.evaluate(tt, a, b)[2])(t_safe, qs, vs), jnp.nan)
     stats = {k: jnp.asarray(sol.stats[k]) for k in ("num_steps", "num_accepted_steps", "num_rejected_steps")}
     result = RESULTS.promote(sol.result)
     return Solution(

@@ -1,7 +1,7 @@
 """Scene effects: small modules whose sum is a scene's vector field (see :mod:`jaxbody.scene`)."""
 
 from ._base import Effect as Effect, EffectContext as EffectContext
-from .constraints import Constraint as Constraint, HolonomicConstraint as HolonomicConstraint
+from .constraints import Constraint as Constraint
 from .forces import (
     Actuation as Actuation,
     BodyLoads as BodyLoads,

@@ -1,0 +1,174 @@
+"""The Maggi layer through the simulator: constraints in a scene's constraint slot.
+
+A four-bar linkage (a spatial ``Model`` plus a ``LoopClosure``) and Example 5 run as scenes
+through ``jb.simulate`` and ``jb.simulate_batch``; the rolling disk (a ``ConstrainedSystem`` on a
+quasi-velocity base system) runs through both entry points directly. ``Solution.reactions`` and
+``Solution.constraint_drift`` are checked against independent references: the planar
+Newton–Euler equations of the four-bar with the pin forces as unknowns (``test_constraints``),
+the disk's own Maggi solve at the saved states, and central finite differences for the
+gradient of a loop reaction with respect to a link mass through the solve.
+"""
+
+import sys
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxbody as jb
+from jaxbody import constraints as jc
+from jaxbody import maggi
+from jaxbody.examples import disk as dk
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_constraints import example5, four_bar, four_bar_angles, four_bar_newton_euler, four_bar_rates  # noqa: E402
+
+# shared by the four-bar tests, so one compiled solve serves them (forward-mode adjoint: the
+# gradient test takes jax.jacfwd through the solve)
+KW = dict(n_save=11, rtol=1e-10, atol=1e-10, adjoint="forward")
+T1 = 1.0
+
+
+def four_bar_state(crank_angle, crank_rate):
+    th = four_bar_angles(crank_angle)
+    w = four_bar_rates(th, crank_rate)
+    return jnp.array([th[0], th[1] - th[0], th[2]]), jnp.array([w[0], w[1] - w[0], w[2]])
+
+
+@pytest.fixture(scope="module")
+def four_bar_scene():
+    cs = four_bar()
+    return jb.scene(cs.base.model, constraints=cs)
+
+
+@pytest.fixture(scope="module")
+def ex5():
+    return example5()
+
+
+@pytest.fixture(scope="module")
+def four_bar_run(four_bar_scene):
+    q0, v0 = four_bar_state(0.6, 2.0)
+    return jb.simulate(four_bar_scene, q0, v0, T1, **KW)
+
+
+def test_four_bar_scene_reactions_and_residuals(four_bar_scene, four_bar_run):
+    sol = four_bar_run
+    assert four_bar_scene.path == "spatial" and isinstance(four_bar_scene.constraints, maggi.ConstrainedSystem)
+    assert sol.reactions.shape == (11, 2)
+    assert set(sol.constraint_drift) == {"position", "velocity"}
+    assert dict(sol.layout)["constraint_names"] == four_bar().constraint_names
+    # residuals bounded along the run
+    assert float(jnp.max(jnp.abs(sol.constraint_drift["position"]))) < 1e-9
+    assert float(jnp.max(jnp.abs(sol.constraint_drift["velocity"]))) < 1e-8
+    assert float(sol.energy_drift) < 1e-8
+    # the loop reaction is the pin force on the coupler: planar Newton–Euler at each saved state
+    for q, v, lam in zip(np.asarray(sol.q), np.asarray(sol.v), np.asarray(sol.reactions)):
+        th = np.array([q[0], q[0] + q[1], q[2]])
+        w = np.array([v[0], v[0] + v[1], v[2]])
+        np.testing.assert_allclose(lam, four_bar_newton_euler(th, w)[7:9], rtol=1e-7, atol=1e-7)
+
+
+@pytest.mark.slow
+def test_four_bar_scene_equals_constrained_system(four_bar_run):
+    """The scene path (gravity a declared effect, M and f from the scene) and the
+    ConstrainedSystem itself (its ModelBase bracket) integrate the same motion."""
+    sol = four_bar_run
+    direct = jb.simulate(four_bar(), sol.q[0], sol.v[0], T1, **KW)
+    np.testing.assert_allclose(direct.q, sol.q, atol=1e-9)
+    np.testing.assert_allclose(direct.reactions, sol.reactions, rtol=1e-7, atol=1e-8)
+    np.testing.assert_allclose(direct.constraint_drift["position"], sol.constraint_drift["position"], atol=1e-9)
+
+
+def test_four_bar_batch_equals_loop(four_bar_scene):
+    states = [four_bar_state(a, w) for a, w in ((0.6, 2.0), (1.4, -1.0), (2.5, 0.5))]
+    q0s = jnp.stack([s[0] for s in states])
+    v0s = jnp.stack([s[1] for s in states])
+    batch = jb.simulate_batch(four_bar_scene, q0s, v0s, T1, **KW)
+    assert batch.reactions.shape == (3, 11, 2) and batch.constraint_drift["velocity"].shape == (3, 11, 2)
+    for i in range(3):
+        one = jb.simulate(four_bar_scene, q0s[i], v0s[i], T1, **KW)
+        np.testing.assert_allclose(batch.q[i], one.q, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(batch.v[i], one.v, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(batch.reactions[i], one.reactions, rtol=1e-12, atol=1e-12)
+        for k in ("position", "velocity"):
+            np.testing.assert_allclose(batch.constraint_drift[k][i], one.constraint_drift[k], rtol=0, atol=1e-12)
+
+
+def test_loop_reaction_gradient_wrt_link_mass_through_the_solve(four_bar_scene):
+    """∂Λ(t1)/∂m_coupler through a constrained simulation vs central finite differences."""
+    q0, v0 = four_bar_state(0.6, 2.0)
+    t1 = 0.3
+
+    def final_reaction(m):
+        sc = eqx.tree_at(lambda s: s.system.body_mass, four_bar_scene, four_bar_scene.system.body_mass.at[1].set(m))
+        return jb.simulate(sc, q0, v0, t1, **KW).reactions[-1, 0]
+
+    m = 1.2
+    g = float(jax.jacfwd(final_reaction)(m))
+    h = 1e-3
+    fd = (float(final_reaction(m + h)) - float(final_reaction(m - h))) / (2 * h)
+    assert abs(g) > 1e-2
+    np.testing.assert_allclose(g, fd, rtol=1e-5)
+
+
+def test_example5_point_on_line_is_redundant_in_the_plane(ex5):
+    """Example 5 (simulated through the slot in test_scene) written as a point on the vertical
+    line: of its two rows, the one normal to the plane of motion is satisfied by the hinges
+    identically, so the scene names it redundant (the in-plane PointOnPlane is the one to use)."""
+    model = ex5.base.model
+    with pytest.raises(ValueError, match="redundant"):
+        jb.scene(model, constraints=[jc.PointOnLine(model, "link2", (0, 0, -0.8), direction=(0, 0, 1))])
+
+
+@pytest.mark.slow  # ~20 s (two compilations of the disk's autodiff bracket)
+def test_rolling_disk_through_simulate_and_simulate_batch():
+    cs = dk.rolling_disk()
+    rho = float(cs.base.radius)
+    th = 1.2
+
+    def admissible(x1, x2, x3):  # rolling: x4 = −ρ x3, x5 = −ρ sin θ x1
+        return jnp.array([x1, x2, x3, -rho * x3, -rho * np.sin(th) * x1])
+
+    q0s = jnp.array([[0.0, 0.0, 0.0, th, 0.0], [0.1, -0.2, 0.3, th, 0.5]])
+    x0s = jnp.stack([admissible(0.2, 1.0, 6.0), admissible(-0.3, 0.5, 4.0)])
+    kw = dict(n_save=6, rtol=1e-10, atol=1e-10)
+    batch = jb.simulate_batch(cs, q0s, x0s, 0.5, **kw)
+    assert batch.reactions.shape == (2, 6, 2)
+    for i in range(2):
+        one = jb.simulate(cs, q0s[i], x0s[i], 0.5, **kw)
+        np.testing.assert_allclose(batch.q[i], one.q, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(batch.reactions[i], one.reactions, rtol=1e-12, atol=1e-12)
+        # the friction reactions equal the Maggi solve at the saved states
+        out = dk.disk_outputs(cs, one.t, one.q, one.v)
+        np.testing.assert_allclose(one.reactions, out.reactions, rtol=1e-7, atol=1e-8)
+        # non-holonomic rows: no position residual; velocity residuals bounded; energy kept
+        np.testing.assert_array_equal(one.constraint_drift["position"], 0.0)
+        assert float(jnp.max(jnp.abs(one.constraint_drift["velocity"]))) < 1e-9
+        assert float(one.energy_drift) < 1e-8
+
+
+def test_solution_file_keeps_residuals_and_reactions(four_bar_run, tmp_path):
+    four_bar_run.save(tmp_path / "fb.npz")
+    back = jb.load_solution(tmp_path / "fb.npz")
+    np.testing.assert_array_equal(back.reactions, four_bar_run.reactions)
+    for k in ("position", "velocity"):
+        np.testing.assert_array_equal(back.constraint_drift[k], four_bar_run.constraint_drift[k])
+    assert dict(back.layout)["constraint_names"] == dict(four_bar_run.layout)["constraint_names"]
+
+
+def test_constraint_slot_errors(four_bar_scene, ex5):
+    model = four_bar_scene.system
+    loop = four_bar().constraints[0]
+    # at qpos0 the four-bar lies along x: the x row of the loop is redundant there
+    with pytest.raises(ValueError, match=r"scene: constraints: .*q_ref="):
+        jb.scene(model, constraints=[loop])
+    with pytest.raises(ValueError, match="not on a jaxbody.Model"):
+        jb.scene(model, constraints=dk.rolling_disk())
+    with pytest.raises(ValueError, match="lacks accelerations, drift"):
+        jb.scene(model, constraints=object())
+    with pytest.raises(ValueError, match=r"\(nq, nv\) = \(2, 2\)"):
+        jb.scene(model, constraints=ex5)
