@@ -634,8 +634,9 @@ def balance(
         ``(balanced_system, BalanceReport)``.
 
     Raises:
-        TypeError: not a planar system or Model. ValueError: unknown bodies, bad bounds or
-        penalty keys, a required body without a counterweight on it or below it.
+        TypeError: not a planar system or Model.
+        ValueError: unknown bodies, bad bounds or penalty keys, a required body without a
+            counterweight on it or below it.
     """
     _check_system(system)
     start = time.perf_counter()
