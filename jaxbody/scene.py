@@ -88,6 +88,9 @@ def _planar_from_model(model: Model, gravity=None, tol: float = 1e-9):
 
 
 def _planar_conversion(model, gravity, tol):
+    """:func:`jaxbody.planar.from_model` of the same mechanism with every hinge turned to
+    point along the plane normal ``n`` (``s_j`` records the turn), without its springs and
+    dampers (they are effects of the scene) and without gravity (an effect too)."""
     from . import planar
     from .kinematics import forward_kinematics
 
@@ -104,29 +107,19 @@ def _planar_conversion(model, gravity, tol):
     gn = np.linalg.norm(g)
     if gn > 0 and abs(g @ n) > tol * gn:
         return None
-    if gn > 0:
-        e2 = -g / gn
-    else:  # any direction normal to n
-        trial = np.eye(3)[np.argmin(np.abs(n))]
-        e2 = trial - (trial @ n) * n
-        e2 = e2 / np.linalg.norm(e2)
-    e1 = np.cross(e2, n)
-    plane = jnp.asarray(np.stack([e1, e2]), model.body_pos.dtype)
-    hinge = kin.base_point @ plane.T
-    par = np.asarray(model.tree.parent_array)
-    hinge_pos = jnp.where(jnp.asarray(par >= 0)[:, None], hinge - hinge[np.maximum(par, 0)], hinge)
-    n_ = jnp.asarray(n, plane.dtype)
-    system = planar.PlanarSystem(
-        tree=model.tree,
-        body_mass=model.body_mass,
-        body_com=(kin.com - kin.base_point) @ plane.T,
-        hinge_pos=hinge_pos,
-        body_inertia=jnp.einsum("i,nij,j->n", n_, kin.central_inertia, n_),
-        gravity=jnp.zeros(2, plane.dtype),
-        base_mass=jnp.zeros((), plane.dtype),
-        translating_base=False,
-        angle_origin=0.0,
+    dtype = model.body_pos.dtype
+    aligned = eqx.tree_at(
+        lambda m: (m.joint_axis, m.dof_damping, m.joint_stiffness, m.gravity),
+        model,
+        (
+            model.joint_axis * jnp.asarray(signs, dtype)[:, None],
+            jnp.zeros_like(model.dof_damping),
+            jnp.zeros_like(model.joint_stiffness),
+            jnp.asarray(g, dtype),
+        ),
     )
+    system = eqx.tree_at(lambda s: s.gravity, planar.from_model(aligned, atol=tol), jnp.zeros(2, dtype))
+    plane = jnp.asarray(planar.plane_basis(n, g), dtype)
     return system, plane, tuple(float(s) for s in signs)
 
 

@@ -355,3 +355,24 @@ def test_robot_matches_mujoco_rk4(name, models_dir):
     sol = jb.simulate(model, q0, v0, n * dt, solver="rk4", dt0=dt, n_save=2)
     np.testing.assert_allclose(sol.q[-1], d.qpos, atol=1e-9)
     np.testing.assert_allclose(sol.v[-1], d.qvel, atol=1e-8)
+
+
+def test_planar_path_handles_opposite_hinges_and_dampers():
+    """Hinges pointing against the plane normal and joint dampers/springs: the planar path
+    (planar.from_model of the aligned mechanism) gives the spatial path's accelerations."""
+    b = jb.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+    axes = [(0, 1, 0), (0, -1, 0), (0, 1, 0)]
+    for k, ax in enumerate(axes):
+        b.add_body(f"l{k}", None if k == 0 else f"l{k - 1}", pos=(0, 0, 0) if k == 0 else (0.0, 0.0, -0.5),
+                   joints=[jb.Hinge(axis=ax, damping=0.1 * (k + 1), stiffness=0.5 * k)],
+                   mass=1.0 + k, com=(0.05 * k, 0.0, -0.25), inertia=(0.02, 0.03 + 0.005 * k, 0.025))
+    model = b.build()
+    planar_scene = jb.scene(model)
+    spatial_scene = jb.scene(model, planar=False)
+    assert planar_scene.path == "planar" and spatial_scene.path == "spatial"
+    rng = np.random.default_rng(5)
+    for _ in range(3):
+        q, v = jnp.asarray(rng.normal(size=3)), jnp.asarray(rng.normal(size=3))
+        np.testing.assert_allclose(planar_scene.acceleration(0.0, q, v), spatial_scene.acceleration(0.0, q, v),
+                                   rtol=1e-11, atol=1e-11)
+        np.testing.assert_allclose(planar_scene.total_energy(q, v), spatial_scene.total_energy(q, v), rtol=1e-12)

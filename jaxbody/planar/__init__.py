@@ -15,6 +15,7 @@ from .system import (
     chain as chain,
     from_model as from_model,
     from_parents as from_parents,
+    plane_basis as plane_basis,
     horizontal_to_vertical as horizontal_to_vertical,
     validate as validate,
     vertical_to_horizontal as vertical_to_horizontal,

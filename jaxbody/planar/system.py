@@ -340,6 +340,23 @@ def horizontal_to_vertical(theta: ArrayLike) -> Array:
 
 
 
+def plane_basis(normal, gravity) -> np.ndarray:
+    """Rows ``(e_1, e_2)`` of the plane of motion normal to ``normal``, in world axes.
+
+    ``e_2 = −g/|g|`` points up (any direction normal to ``normal`` when there is no gravity)
+    and ``e_1 = e_2 × n``, so angles in the plane are counter-clockwise about ``n``. The one
+    choice of axes used by :func:`from_model` and by scenes that run on the planar path.
+    """
+    n = np.asarray(normal, dtype=np.float64)
+    g = np.asarray(gravity, dtype=np.float64)
+    if np.linalg.norm(g) > 0:
+        e2 = -g / np.linalg.norm(g)
+    else:
+        e2 = np.cross(n, np.eye(3)[int(np.argmin(np.abs(n)))])
+        e2 /= np.linalg.norm(e2)
+    return np.stack([np.cross(e2, n), e2])
+
+
 def from_model(model, *, atol: float = 1e-9) -> PlanarSystem:
     """The planar system of a spatial :class:`~jaxbody.Model` whose hinges are all parallel.
 
@@ -402,13 +419,7 @@ def from_model(model, *, atol: float = 1e-9) -> PlanarSystem:
             f"planar.from_model: gravity {g.tolist()} is not in the plane of motion (normal "
             f"{n.round(12).tolist()})"
         )
-    if np.linalg.norm(g) > 0:
-        e2 = -g / np.linalg.norm(g)
-    else:
-        e2 = np.cross(n, np.eye(3)[int(np.argmin(np.abs(n)))])
-        e2 /= np.linalg.norm(e2)
-    e1 = np.cross(e2, n)
-    P = np.stack([e1, e2])  # world -> plane
+    P = plane_basis(n, g)  # world -> plane
     hinge = np.asarray(kin.base_point, dtype=np.float64)
     com = np.asarray(kin.com, dtype=np.float64)
     par = model.tree.parent_array
