@@ -118,7 +118,13 @@ def _planar_conversion(model, gravity, tol):
             jnp.asarray(g, dtype),
         ),
     )
-    system = eqx.tree_at(lambda s: s.gravity, planar.from_model(aligned, atol=tol), jnp.zeros(2, dtype))
+    try:
+        converted = planar.from_model(aligned, atol=tol)
+    except ValueError:
+        # not a valid planar system (e.g. bad parameters): the spatial path and the boundary
+        # checks of simulate report what is wrong, in the model's own terms
+        return None
+    system = eqx.tree_at(lambda s: s.gravity, converted, jnp.zeros(2, dtype))
     plane = jnp.asarray(planar.plane_basis(n, g), dtype)
     return system, plane, tuple(float(s) for s in signs)
 

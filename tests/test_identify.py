@@ -149,6 +149,7 @@ def _torque2(t, q, v):
     return jnp.stack([2.0 * jnp.sin(2.0 * t), jnp.cos(3.0 * t)])
 
 
+@pytest.mark.slow  # about 60 s; notebook 06 fits the double pendulum in the default suite
 def test_fit_double_pendulum_from_perturbed_start():
     system = jb.examples.double_pendulum()
     t = np.linspace(0.0, 1.5, 31)
