@@ -160,13 +160,21 @@ def test_path_forms(models_dir, tmp_path):
 
 def test_jit_twice_with_equal_models(models_dir):
     """STYLE rule 4: two separately loaded, equal models hit the same jit cache entry."""
-    f = jax.jit(lambda mdl: mdl.body_mass.sum())
+    traces = []
+
+    def total_mass(mdl):
+        traces.append(1)  # runs once per trace, not per call
+        return mdl.body_mass.sum()
+
+    f = jax.jit(total_mass)
     a = _load_quiet(models_dir / "anymal_c.xml")
     b = _load_quiet(models_dir / "anymal_c.xml")
     assert a.tree == b.tree and a.joints == b.joints and hash(a.joints) == hash(b.joints)
     ra, rb = f(a), f(b)
     assert float(ra) == float(rb) == pytest.approx(float(np.sum(np.asarray(a.body_mass))))
-    assert f._cache_size() == 1
+    # the second, equal model reuses the first trace (the C++ cache size is not used: other
+    # tests in the same pytest worker can switch jit to its Python path)
+    assert len(traces) == 1
 
 
 def test_dtype_float32(models_dir):
