@@ -22,6 +22,7 @@ the command turns on float64 (``jax_enable_x64``) globally.
 import argparse
 import csv
 import dataclasses
+import functools
 import json
 import math
 import os
@@ -125,6 +126,44 @@ def _floats(text):
     return values
 
 
+def _nonnegative(text):
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not (math.isfinite(x) and x >= 0):
+        raise argparse.ArgumentTypeError(f"must be non-negative and finite, got {text}")
+    return x
+
+
+def _assignment(text):
+    """``NAME=V1[,V2...]`` -> ``(NAME, (V1, V2, ...))``."""
+    name, sep, values = text.partition("=")
+    if not sep or not name.strip():
+        raise argparse.ArgumentTypeError(f"expected NAME=VALUE[,VALUE...], got {text!r}")
+    return name.strip(), _floats(values)
+
+
+def _add_scene_options(p, verb):
+    """The scene options shared by ``simulate`` and ``info`` (they map to ``jaxbody.scene``)."""
+    grav = p.add_mutually_exclusive_group()
+    grav.add_argument("--gravity", type=_floats, default=None, metavar="GX,GY,GZ",
+                      help=f"{verb} this gravity vector in m/s² (world frame) instead of the model's")
+    grav.add_argument("--no-gravity", action="store_true", help=f"{verb} no gravity")
+    p.add_argument("--no-springs", action="store_true", help=f"{verb} no joint springs")
+    damp = p.add_mutually_exclusive_group()
+    damp.add_argument("--no-dampers", action="store_true", help=f"{verb} no joint dampers")
+    damp.add_argument("--damping", type=_nonnegative, default=None, metavar="VALUE",
+                      help=f"{verb} this viscous damping on every DoF (N·m·s/rad or N·s/m) instead of the model's")
+    p.add_argument("--torque", type=_assignment, action="append", default=[], metavar="JOINT=VALUE",
+                   help="a constant generalized force on a joint, by name (hinge: N·m, slide: N; ball: 3 "
+                        "values, free: 6; built-in examples: the example's drive in the layout of its "
+                        "velocities, by coordinate name, e.g. the hinge moments of the double pendulum); repeatable")
+    p.add_argument("--load", type=_assignment, action="append", default=[], metavar="BODY=FX,FY,FZ[,MX,MY,MZ]",
+                   help="a constant world force (N) and moment (N·m) at a body's centre of mass, by name "
+                        "(MuJoCo xfrc_applied); repeatable")
+
+
 def _parser() -> argparse.ArgumentParser:
     from . import __version__
 
@@ -141,8 +180,9 @@ def _parser() -> argparse.ArgumentParser:
         help="integrate a model or example; write npz/CSV, a plot and an animation",
         description=(
             "Integrate the equations of motion of SOURCE from t = 0 to --t1 with diffrax "
-            "(the model's own gravity, joint springs and dampers; no actuation) and write "
-            "the trajectory. Robot models start from --keyframe or qpos0 at rest, examples "
+            "and write the trajectory. The scene is the model's own gravity, joint springs "
+            "and dampers unless the scene options change them, plus the constant joint "
+            "torques and body loads they add. Robot models start from --keyframe or qpos0 at rest, examples "
             "from the state `jaxbody examples` lists. The run is split into --chunks pieces; "
             "the files are rewritten after each, so an interrupted or failed run keeps what "
             "it finished."
@@ -177,6 +217,7 @@ def _parser() -> argparse.ArgumentParser:
     sim.add_argument("--frames", type=_count(2), default=100,
                      help="at most this many animation frames (default 100)")
     sim.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _add_scene_options(sim, "integrate with")
 
     info = sub.add_parser(
         "info",
@@ -184,11 +225,13 @@ def _parser() -> argparse.ArgumentParser:
         description=(
             "Print the body tree and joints of SOURCE, total and subtree masses, the static "
             "moments and augmented inertias (at --keyframe or the reference configuration), "
-            "the effects the model declares and what of an MJCF/URDF file jaxbody ignores."
+            "the effects the scene declares (the model's, changed by the same scene options as "
+            "`jaxbody simulate`) and what of an MJCF/URDF file jaxbody ignores."
         ),
     )
     info.add_argument("source", metavar="SOURCE", help=source_help)
     info.add_argument("--keyframe", default=None, help="evaluate at this keyframe")
+    _add_scene_options(info, "declare")
 
     sub.add_parser("examples", help="list the built-in examples and robot models",
                    description="List the papers' systems and the robot models shipped with jaxbody.")
@@ -389,6 +432,93 @@ def _initial_state(src: _Source, args):
     return q0, v0
 
 
+# ------------------------------------------------------------------------------ scene
+@functools.lru_cache(maxsize=None)
+def _constant():
+    import equinox as eqx
+
+    class Constant(eqx.Module):
+        """A constant ``f(t, q, v) = value`` (an array leaf: one compiled program for any value)."""
+
+        value: object
+
+        def __call__(self, t, q, v):
+            return self.value
+
+    return Constant
+
+
+def _named_vectors(option, given, names, sizes, what):
+    """``--torque``/``--load`` assignments -> ``{index: values}``, naming what is wrong."""
+    out = {}
+    for name, values in given:
+        if name not in names:
+            plural = {"body": "bodies"}.get(what, what + "s")
+            raise UsageError(f"{option}: unknown {what} {name!r}; {plural}: {', '.join(names)}")
+        i = names.index(name)
+        if i in out:
+            raise UsageError(f"{option}: {what} {name!r} given twice")
+        if len(values) not in sizes[i]:
+            want = " or ".join(str(n) for n in sizes[i])
+            raise UsageError(f"{option} {name}: expected {want} values, got {len(values)}")
+        out[i] = values
+    return out
+
+
+def _scene(src: _Source, args):
+    """The scene the options declare (``jaxbody.scene``), or a UsageError naming the option."""
+    import jax.numpy as jnp
+    import numpy as np
+
+    import jaxbody as jb
+
+    system = src.system
+    dtype = src.q0.dtype
+    spatial = src.kind == "model"
+    if not spatial:
+        for option, used in (("--no-springs", args.no_springs), ("--no-dampers", args.no_dampers),
+                             ("--damping", args.damping is not None), ("--load", bool(args.load)),
+                             ("--gravity", args.gravity is not None)):
+            if used:
+                raise UsageError(f"{option} needs a spatial model (an MJCF or URDF file or a shipped "
+                                 f"robot); the built-in example {src.name!r} takes --no-gravity and --torque only")
+    kw = {}
+    if args.no_gravity:
+        kw["gravity"] = False
+    elif args.gravity is not None:
+        if len(args.gravity) != 3:
+            raise UsageError(f"--gravity: expected 3 values GX,GY,GZ, got {len(args.gravity)}")
+        kw["gravity"] = jnp.asarray(args.gravity, dtype)
+    if args.no_springs:
+        kw["springs"] = False
+    if args.no_dampers:
+        kw["dampers"] = False
+    elif args.damping is not None:
+        kw["dampers"] = jnp.full((system.nv,), args.damping, dtype)
+    if args.torque:
+        if spatial:
+            names = list(system.joint_names)
+            dofs = {jb.HINGE: 1, jb.SLIDE: 1, jb.BALL: 3, jb.FREE: 6}
+            sizes = [(dofs[int(k)],) for k in system.joints.type]
+            where = [int(a) for a in system.joints.dofadr]
+        else:
+            names, sizes, where = list(src.q_labels), [(1,)] * system.nv, list(range(system.nv))
+        tau = np.zeros(system.nv)
+        for i, values in _named_vectors("--torque", args.torque, names, sizes, "joint" if spatial else "coordinate").items():
+            tau[where[i]:where[i] + len(values)] = values
+        kw["actuation"] = _constant()(jnp.asarray(tau, dtype))
+    if args.load:
+        names = list(system.body_names)
+        wrench = np.zeros((system.n_body, 6))
+        for i, values in _named_vectors("--load", args.load, names, [(3, 6)] * len(names), "body").items():
+            wrench[i, :len(values)] = values
+        kw["loads"] = _constant()(jnp.asarray(wrench, dtype))
+    try:
+        return jb.scene(system, **kw)
+    except ValueError as e:
+        raise UsageError(_one_line(str(e))) from None
+
+
 # ------------------------------------------------------------------------------ simulate
 def _simulate_chunk(system, q, v, ts, args):
     """The one place the command calls the library's integrator.
@@ -513,6 +643,7 @@ def _simulate(args) -> int:
     import numpy as np
 
     q0, v0 = _initial_state(src, args)
+    scene = _scene(src, args)
     for line in src.ignored:
         print(f"jaxbody simulate: note: not modelled, ignored: {line}", file=sys.stderr)
     out = args.out
@@ -522,7 +653,7 @@ def _simulate(args) -> int:
         "source": src.origin, "name": src.name, "start": src.start, "t1": args.t1,
         "solver": args.solver, "rtol": args.rtol, "atol": args.atol, "dt": args.dt,
         "saves": args.saves, "layout": "MuJoCo qpos/qvel" if src.kind == "model" else "example coordinates",
-        "jax_version": jax.__version__,
+        "jax_version": jax.__version__, "effects": list(scene.effect_names),
     }
     files = _TrajectoryFiles(out, args.csv, src, meta)
     chunks = _chunk_times(args.t1, args.saves, args.chunks)
@@ -530,12 +661,13 @@ def _simulate(args) -> int:
     q, v = q0, v0
     stats = {"num_accepted_steps": 0, "num_rejected_steps": 0}
     status, failure = "running", None
+    balance, offset = [], 0.0  # E - E0 - work of the non-conservative effects, chunk by chunk
     start = time.perf_counter()
     try:
         for k, (ts, n) in enumerate(chunks):
             ts_j = jnp.asarray(ts, dtype=q0.dtype)
             try:
-                sol = _simulate_chunk(src.system, q, v, ts_j, args)
+                sol = _simulate_chunk(scene, q, v, ts_j, args)
             except (ValueError, TypeError) as e:
                 if k == 0:  # the integrator rejected the arguments before integrating
                     hint = " (give --dt)" if "dt0" in str(e) else ""
@@ -555,6 +687,10 @@ def _simulate(args) -> int:
             is_last = k == len(chunks) - 1
             status = "failed" if not ok else ("complete" if is_last else "running")
             files.append(t[keep], qs[keep], vs[keep], None if energy is None else energy[keep], status)
+            if sol.work and energy is not None:
+                bal = offset + np.asarray(sol.energy_balance)[:n]
+                balance.append(bal[keep])
+                offset = float(bal[-1])
             progress.update(float(ts[-1] - ts[0]))
             if not ok:
                 break
@@ -576,6 +712,8 @@ def _simulate(args) -> int:
 
     print(f"jaxbody simulate: {src.name} ({src.origin}), nq = {src.system.nq}, nv = {src.system.nv}, "
           f"from {src.start}")
+    own = ["gravity"] if scene.path == "system" and np.any(np.asarray(getattr(scene.system, "gravity", 0.0)) != 0) else []
+    print(f"  effects         {', '.join(own + list(scene.effect_names)) or 'none'}")
     print(f"  integrated      t = 0 .. {t[-1] if len(t) else 0:g} s of {args.t1:g} s with {args.solver}, "
           f"rtol={args.rtol:g}, atol={args.atol:g}" + (f", dt={args.dt:g}" if args.dt else "")
           + f", in {len(chunks)} chunks")
@@ -584,6 +722,9 @@ def _simulate(args) -> int:
         e0 = energy[0]
         drift = np.max(np.abs(energy - e0)) / max(abs(e0), np.finfo(float).tiny)
         print(f"  energy          E0 = {e0:.12g}; max|E-E0|/|E0| = {drift:.3e}")
+        if balance:
+            bal = np.max(np.abs(np.concatenate(balance))) / max(abs(e0), np.finfo(float).tiny)
+            print(f"  energy balance  max|E-E0-W|/|E0| = {bal:.3e} (W: work of the non-conservative effects)")
     print(f"  wall time       {wall:.2f} s incl. compile")
     for path in (out, args.csv, args.plot, args.animate):
         if path is not None and path.exists():
@@ -771,11 +912,13 @@ def _info(args) -> int:
     import jaxbody as jb
 
     system = src.system
+    scene = _scene(src, args)
     print(f"{src.name}: {src.origin}")
     if src.kind == "model":
         _info_model(jb, src, system)
     else:
         _info_planar(src, system)
+    _effects(jb, src, scene)
     print("content of the file that jaxbody does not model (ignored):")
     if src.ignored:
         for line in src.ignored:
@@ -828,26 +971,54 @@ def _info_model(jb, src, model):
     for k in range(model.n_body):
         I = inertia[k]
         print(f"  {k:>3}  {names[k]:<22}  {_vec([I[0, 0], I[1, 1], I[2, 2], I[0, 1], I[0, 2], I[1, 2]])}")
-    _effects_model(model)
 
 
-def _effects_model(model):
+def _effects(jb, src, scene):
+    """The effects the scene declares, as ``jaxbody simulate`` with the same options integrates them."""
     import numpy as np
 
-    g = np.asarray(model.gravity)
-    stiff = np.asarray(model.joint_stiffness)
-    damp = np.asarray(model.dof_damping)
-    arm = np.asarray(model.dof_armature)
-    print("effects the model declares (what `jaxbody simulate` integrates):")
-    print(f"  gravity          {'on, ' + _vec(g, '{:.4g}') + ' m/s²' if np.any(g != 0) else 'off'}")
-    names = model.joint_names
-    springs = [names[j] for j in np.nonzero(stiff > 0)[0]]
-    print(f"  joint springs    {len(springs)} joints" + (f" ({', '.join(springs)})" if springs else ""))
-    dofs = np.nonzero(damp > 0)[0]
-    print(f"  joint dampers    {len(dofs)} DoFs" + (f" (v[{', '.join(map(str, dofs))}])" if len(dofs) else ""))
-    print(f"  armature         {int(np.count_nonzero(arm))} DoFs")
-    print("  actuation        none (no joint forces are applied)")
-    print("  external loads   none")
+    from .effects import Actuation, BodyLoads, Gravity, JointDampers, JointSprings
+
+    by_kind = {type(e): e for e in scene.effects}
+    spatial = src.kind == "model"
+    print(f"effects the scene declares (what `jaxbody simulate` integrates; path {scene.path!r}):")
+    if spatial:
+        g = by_kind.get(Gravity)
+        g = None if g is None else np.asarray(g.vector)
+    else:
+        g = getattr(scene.system, "gravity", None)
+        g = np.asarray(scene.system.system.gravity if g is None else g)
+        g = g if np.any(g != 0) else None
+    print(f"  gravity          {'on, ' + _vec(g, '{:.4g}') + ' m/s²' if g is not None and np.any(g != 0) else 'off'}")
+    if spatial:
+        model = src.system
+        names = model.joint_names
+        springs = by_kind.get(JointSprings)
+        on = [] if springs is None else [names[j] for j in np.nonzero(np.asarray(springs.stiffness) != 0)[0]]
+        print(f"  joint springs    {len(on)} joints" + (f" ({', '.join(on)})" if on else ""))
+        dampers = by_kind.get(JointDampers)
+        dofs = [] if dampers is None else np.nonzero(np.asarray(dampers.damping) != 0)[0]
+        print(f"  joint dampers    {len(dofs)} DoFs" + (f" (v[{', '.join(map(str, dofs))}])" if len(dofs) else ""))
+        print(f"  armature         {int(np.count_nonzero(np.asarray(model.dof_armature)))} DoFs")
+    elif src.kind == "embedded":
+        print(f"  constraints      solved explicitly by {type(src.system).__name__} (coordinates "
+              f"{', '.join(src.q_labels)})")
+    act = by_kind.get(Actuation)
+    if act is None:
+        print("  actuation        none (no joint forces are applied)")
+    else:
+        tau = np.asarray(act.law.value)
+        parts = [f"{src.v_labels[i]} = {tau[i]:.6g}" for i in np.nonzero(tau)[0]]
+        what = "generalized forces" if spatial else "drives"
+        print(f"  actuation        constant {what}: {', '.join(parts) or 'all zero'}")
+    loads = by_kind.get(BodyLoads)
+    if loads is None:
+        print("  external loads   none")
+    else:
+        w = np.asarray(loads.wrench.value)
+        for k in np.nonzero(np.any(w != 0, axis=1))[0]:
+            print(f"  external load    {src.system.body_names[k]}: force {_vec(w[k, :3], '{:.4g}')} N, "
+                  f"moment {_vec(w[k, 3:], '{:.4g}')} N·m at the centre of mass")
 
 
 def _info_planar(src, system):
@@ -885,13 +1056,6 @@ def _info_planar(src, system):
     for k in range(psys.n_body):
         print(f"  {k:>3}  {names[k]:<22}  {float(aug.subtree_mass[k]):<11.6g}  "
               f"{_vec(np.asarray(aug.static_moment[k])):<24}  {float(aug.augmented_inertia[k]):.6g}")
-    g = np.asarray(psys.gravity)
-    print("effects the model declares:")
-    print(f"  gravity          {'on, ' + _vec(g, '{:.4g}') + ' m/s²' if np.any(g != 0) else 'off (horizontal plane)'}")
-    if embedded:
-        print(f"  constraints      solved explicitly by {type(system).__name__} (coordinates "
-              f"{', '.join(src.q_labels)})")
-    print("  actuation        none (no drive torques are applied)")
 
 
 # ------------------------------------------------------------------------------ examples

@@ -23,6 +23,7 @@ frame; directions of planes and lines are in the world frame.
 """
 
 from collections.abc import Callable
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -75,6 +76,27 @@ def _vec(v, n=3, what="vector"):
     return v
 
 
+def _unit(v, what):
+    """A direction argument as a unit vector (shape checked, naming ``what``)."""
+    v = _vec(v, what=what)
+    return v / jnp.linalg.norm(v)
+
+
+def _point_fields(model, body, point, origin, label, on):
+    """``(body, point, origin, label)`` of a point constraint, checked (body name or index,
+    3-vectors); the default label is ``point of '<body>' on <on>``."""
+    body = _body(model, body)
+    label = label or f"point of {model.body_names[body]!r} on {on}"
+    return body, _vec(point, what="point"), _vec(origin, what="origin"), label
+
+
+def _wheel_fields(model, body, radius, centre, axis, normal):
+    """``(body, centre, axis, radius, normal)`` of a wheel constraint, checked (unit axis and
+    normal, radius in the centre's dtype)."""
+    centre = _vec(centre, what="centre")
+    return _body(model, body), centre, _unit(axis, "axis"), jnp.asarray(radius, centre.dtype), _unit(normal, "normal")
+
+
 def body_point(model, q, body: int, point) -> Float[Array, " 3"]:
     """World position of a point fixed in ``body`` (``-1``: the world, point as given)."""
     if body < 0:
@@ -104,22 +126,8 @@ def body_angular_velocity(model, q, v, body: int) -> Float[Array, " 3"]:
     return jnp.stack([W[2, 1], W[0, 2], W[1, 0]])
 
 
-class PointOnPlane(Constraint):
-    """A body point stays on a plane: ``φ = n·(p(q) − p₀) = 0`` (unit ``n``, world frame)."""
-
-    body: int = eqx.field(static=True)
-    point: Array
-    origin: Array
-    normal: Array
-    label: str = eqx.field(static=True)
-
-    def __init__(self, model, body, point, normal, origin=(0.0, 0.0, 0.0), label=None):
-        self.body = _body(model, body)
-        self.point = _vec(point, what="point")
-        self.origin = _vec(origin, what="origin")
-        n = _vec(normal, what="normal")
-        self.normal = n / jnp.linalg.norm(n)
-        self.label = label or f"point of {model.body_names[self.body]!r} on plane"
+class _OneRow(Constraint):
+    """A constraint of one row, named by its ``label``."""
 
     @property
     def size(self):
@@ -129,11 +137,46 @@ class PointOnPlane(Constraint):
     def names(self):
         return (self.label,)
 
+
+class _PointOffset(Constraint):
+    """A body point's offset from ``origin`` vanishes along fixed world ``directions``
+    (``φ = D·(p(q) − p₀)``, one row per direction): the shared form of the point constraints."""
+
+    body: int = eqx.field(static=True)
+    point: Array
+    origin: Array
+    directions: Array
+    label: str = eqx.field(static=True)
+
+    def __init__(self, model, body, point, directions, origin, label, on):
+        self.body, self.point, self.origin, self.label = _point_fields(model, body, point, origin, label, on)
+        self.directions = jnp.asarray(directions, self.point.dtype)
+
+    @property
+    def size(self):
+        return int(self.directions.shape[0])
+
     def position(self, base, t, q):
-        return (self.normal @ (body_point(_model(base), q, self.body, self.point) - self.origin))[None]
+        return self.directions @ (body_point(_model(base), q, self.body, self.point) - self.origin)
 
     def velocity(self, base, t, q, x):
-        return (self.normal @ body_point_velocity(_model(base), q, x, self.body, self.point))[None]
+        return self.directions @ body_point_velocity(_model(base), q, x, self.body, self.point)
+
+
+class PointOnPlane(_PointOffset):
+    """A body point stays on a plane: ``φ = n·(p(q) − p₀) = 0`` (unit ``n``, world frame)."""
+
+    def __init__(self, model, body, point, normal, origin=(0.0, 0.0, 0.0), label=None):
+        super().__init__(model, body, point, _unit(normal, "normal")[None], origin, label, "plane")
+
+    @property
+    def normal(self):
+        """The plane's unit normal (world frame)."""
+        return self.directions[0]
+
+    @property
+    def names(self):
+        return (self.label,)
 
 
 def _normals(direction):
@@ -145,36 +188,21 @@ def _normals(direction):
     return np.stack([n1, np.cross(d, n1)])
 
 
-class PointOnLine(Constraint):
+class PointOnLine(_PointOffset):
     """A body point stays on a line through ``origin`` along ``direction`` (world): two rows,
     the offsets along two unit normals of the line (the reaction is the force across it)."""
 
-    body: int = eqx.field(static=True)
-    point: Array
-    origin: Array
-    normals: Array
-    label: str = eqx.field(static=True)
-
     def __init__(self, model, body, point, direction, origin=(0.0, 0.0, 0.0), label=None):
-        self.body = _body(model, body)
-        self.point = _vec(point, what="point")
-        self.origin = _vec(origin, what="origin")
-        self.normals = jnp.asarray(_normals(_vec(direction, what="direction")), self.point.dtype)
-        self.label = label or f"point of {model.body_names[self.body]!r} on line"
+        super().__init__(model, body, point, _normals(_vec(direction, what="direction")), origin, label, "line")
 
     @property
-    def size(self):
-        return 2
+    def normals(self):
+        """Two unit normals of the line (world frame), one per row."""
+        return self.directions
 
     @property
     def names(self):
         return (f"{self.label}[n1]", f"{self.label}[n2]")
-
-    def position(self, base, t, q):
-        return self.normals @ (body_point(_model(base), q, self.body, self.point) - self.origin)
-
-    def velocity(self, base, t, q, x):
-        return self.normals @ body_point_velocity(_model(base), q, x, self.body, self.point)
 
 
 class LoopClosure(Constraint):
@@ -234,7 +262,7 @@ def _wheel_contact(model, q, body, centre, axis, radius, normal):
     return c, c - radius * s
 
 
-class PlaneContact(Constraint):
+class PlaneContact(_OneRow):
     """Holonomic contact of a wheel with the plane ``n·X = height``: ``φ = n·D(q) − height``."""
 
     body: int = eqx.field(static=True)
@@ -243,24 +271,11 @@ class PlaneContact(Constraint):
     radius: Array
     normal: Array
     height: Array
+    label: ClassVar[str] = "wheel on plane"
 
     def __init__(self, model, body, radius, centre=(0.0, 0.0, 0.0), axis=(0.0, 0.0, 1.0), normal=(0.0, 0.0, 1.0), height=0.0):
-        self.body = _body(model, body)
-        self.centre = _vec(centre, what="centre")
-        a = _vec(axis, what="axis")
-        self.axis = a / jnp.linalg.norm(a)
-        self.radius = jnp.asarray(radius, self.centre.dtype)
-        n = _vec(normal, what="normal")
-        self.normal = n / jnp.linalg.norm(n)
+        self.body, self.centre, self.axis, self.radius, self.normal = _wheel_fields(model, body, radius, centre, axis, normal)
         self.height = jnp.asarray(height, self.centre.dtype)
-
-    @property
-    def size(self):
-        return 1
-
-    @property
-    def names(self):
-        return ("wheel on plane",)
 
     def position(self, base, t, q):
         _, d = _wheel_contact(_model(base), q, self.body, self.centre, self.axis, self.radius, self.normal)
@@ -286,13 +301,7 @@ class RollingContact(Constraint):
     normal: Array
 
     def __init__(self, model, body, radius, centre=(0.0, 0.0, 0.0), axis=(0.0, 0.0, 1.0), normal=(0.0, 0.0, 1.0)):
-        self.body = _body(model, body)
-        self.centre = _vec(centre, what="centre")
-        a = _vec(axis, what="axis")
-        self.axis = a / jnp.linalg.norm(a)
-        self.radius = jnp.asarray(radius, self.centre.dtype)
-        n = _vec(normal, what="normal")
-        self.normal = n / jnp.linalg.norm(n)
+        self.body, self.centre, self.axis, self.radius, self.normal = _wheel_fields(model, body, radius, centre, axis, normal)
 
     @property
     def size(self):
@@ -327,7 +336,7 @@ def rolling_wheel(model, body, radius, centre=(0.0, 0.0, 0.0), axis=(0.0, 0.0, 1
     )
 
 
-class KnifeEdge(Constraint):
+class KnifeEdge(_OneRow):
     """A knife edge (skate): the point ``point`` of ``body`` has no velocity across the edge
     direction ``edge`` (body frame) within the plane of normal ``normal``:
     ``v_p · (n × e)/|n × e| = 0``. The reaction is the lateral force on the edge."""
@@ -336,22 +345,12 @@ class KnifeEdge(Constraint):
     point: Array
     edge: Array
     normal: Array
+    label: ClassVar[str] = "knife edge"
 
     def __init__(self, model, body, point, edge, normal=(0.0, 0.0, 1.0)):
         self.body = _body(model, body)
         self.point = _vec(point, what="point")
-        e = _vec(edge, what="edge")
-        self.edge = e / jnp.linalg.norm(e)
-        n = _vec(normal, what="normal")
-        self.normal = n / jnp.linalg.norm(n)
-
-    @property
-    def size(self):
-        return 1
-
-    @property
-    def names(self):
-        return ("knife edge",)
+        self.edge, self.normal = _unit(edge, "edge"), _unit(normal, "normal")
 
     def velocity(self, base, t, q, x):
         from .kinematics import forward_kinematics
@@ -363,7 +362,7 @@ class KnifeEdge(Constraint):
         return (lateral @ body_point_velocity(m, q, x, self.body, self.point))[None]
 
 
-class PrescribedCoordinate(Constraint):
+class PrescribedCoordinate(_OneRow):
     """Prescribed relative motion of a hinge or slide joint: ``q_j = g(t)``.
 
     ``motion(t, params)`` returns the prescribed coordinate; its rate comes from automatic
@@ -386,14 +385,6 @@ class PrescribedCoordinate(Constraint):
         self.qpos, self.dof = model.joints.qposadr[j], model.joints.dofadr[j]
         self.motion, self.params = motion, params
         self.label = f"prescribed {model.joint_names[j]!r}"
-
-    @property
-    def size(self):
-        return 1
-
-    @property
-    def names(self):
-        return (self.label,)
 
     def position(self, base, t, q):
         return (q[self.qpos] - self.motion(t, self.params))[None]

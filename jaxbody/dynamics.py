@@ -142,7 +142,10 @@ def forward_dynamics(
     external: Float[ArrayLike, "_n_body _six"] | None = None,
     include_passive: bool = False,
 ) -> Float[Array, " nv"]:
-    """Accelerations ``a = M⁻¹ (tau - bias + Jᵀ external [+ passive])`` by a Cholesky solve.
+    """Accelerations ``a = M⁻¹ (tau - bias + Jᵀ external [+ passive])``.
+
+    Runs :func:`jaxbody.kernels.acceleration` (the unrolled kernel for one state of a small
+    tree, the vectorised one for batches and large trees; the same numbers either way).
 
     ``include_passive=True`` adds the joint springs and dampers (as ``jb.simulate`` does for a
     model). Planar system: :func:`jaxbody.planar.forward_dynamics` (absolute angular
@@ -154,9 +157,11 @@ def forward_dynamics(
     model, q, v, *rest = check_inputs(model, q=q, v=v, tau=tau, external=external)
     tau = rest.pop(0) if tau is not None else None
     ext = rest.pop(0) if external is not None else None
-    return kernels.forward_dynamics(
-        model, compute_data(model, q, v), tau, external=ext, include_passive=include_passive
-    )
+    force = tau
+    if include_passive:
+        passive = kernels.passive_forces_at(model, q, v)
+        force = passive if force is None else force + passive
+    return kernels.acceleration(model, q, v, force, gravity=model.gravity, external=ext)
 
 
 def joint_reactions(

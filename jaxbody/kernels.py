@@ -31,14 +31,17 @@ Conventions (docs/conventions.md):
 * Reactions: ``(force, moment)`` the parent exerts on body ``k``, moment about ``O_0k``.
 """
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax import custom_batching
 
 from ._types import Array, ArrayLike, Float
 from ._util import check_shape, index
 from .augmented import subtree_static_moment
-from .data import Data
+from .data import Data, compute_data
 from .kinematics import (
     body_accelerations,
     dof_motion_at,
@@ -49,6 +52,7 @@ from .kinematics import (
     reference_point,
     rigid_body_kinetic_energy,
 )
+from . import unrolled
 from .joints import SLIDE
 from .linalg import solve_spd
 from .model import Model
@@ -64,6 +68,9 @@ __all__ = [
     "kinetic_energy",
     "potential_energy",
     "passive_forces",
+    "passive_forces_at",
+    "acceleration",
+    "KERNELS",
 ]
 
 
@@ -124,13 +131,14 @@ def force_factors(
     a: Float[ArrayLike, " nv"],
     *,
     external: Float[ArrayLike, "n_body 6"] | None = None,
-    gravity: bool = True,
+    gravity=True,
 ) -> ForceFactors:
     """Statement 1 at ``(q, v, a)``: relative force factors of every body (spec eqs 1–4).
 
     ``force``/``moment`` are what the parent (ground for roots) exerts on body ``k`` at
-    ``O_0k``: constraint reaction plus drive. ``gravity=False`` leaves the model's gravity
-    out of the program (scenes declare gravity as an effect of their own). Terms that the
+    ``O_0k``: constraint reaction plus drive. ``gravity=False`` (or ``None``) leaves the
+    model's gravity out of the program (scenes declare gravity as an effect of their own); a
+    vector replaces the model's gravity. Terms that the
     model's joints make identically zero are left out when the program is traced: the
     relative motion of poles without slides or bodies with several joints, the carrier
     acceleration without a free joint.
@@ -168,7 +176,12 @@ def force_factors(
             Wr = jnp.where(free, 0.0, Wr)
         W_root = jnp.where(free, point_acceleration(motion, data.base_point), 0.0)
     Fr, Mr = _external_loads(model, data, external)
-    g = model.gravity if gravity else None
+    if gravity is True:
+        g = model.gravity
+    elif gravity is None or gravity is False:
+        g = None
+    else:
+        g = jnp.asarray(gravity, data.com.dtype)
     return relative_force_factors(
         tree, aug.subtree_mass, aug.static_moment, aug.augmented_inertia, data.link,
         w, e, Vr, Wr, W_root, g, Fr, Mr,
@@ -309,7 +322,115 @@ def potential_energy(model: Model, data: Data) -> Float[Array, ""]:
 
 def passive_forces(model: Model, data: Data) -> Float[Array, " nv"]:
     """Joint springs towards ``qpos_spring`` and viscous damping (MuJoCo ``qfrc_passive``)."""
-    f = -model.dof_damping * data.v
-    for dofs, disp, k in _spring_terms(model, data.q):
+    return passive_forces_at(model, data.q, data.v)
+
+
+def passive_forces_at(model: Model, q: Float[Array, " nq"], v: Float[Array, " nv"]) -> Float[Array, " nv"]:
+    """:func:`passive_forces` from the coordinates alone (springs and dampers need no kinematics)."""
+    f = -model.dof_damping * v
+    for dofs, disp, k in _spring_terms(model, q):
         f = f.at[dofs].add(-k[:, None] * disp)
     return f
+
+
+# ----------------------------------------------------------------------------- kernel choice
+#: The forward-dynamics kernels :func:`acceleration` can run (see docs/performance.md).
+KERNELS = ("auto", "unrolled", "vectorised")
+#: What ``kernel=None`` means: the vectorised kernel, whose compile time and memory are flat in
+#: the tree's size. ``"auto"`` (the unrolled kernel for single states) is opt-in while its
+#: compile cost is being measured (docs/performance.md).
+DEFAULT_KERNEL = "vectorised"
+
+
+def _vectorised_acceleration(model: Model, q, v, force, gravity, external):
+    """Forward dynamics through :class:`Data` and the vectorised kernels (any tree size)."""
+    data = compute_data(model, q, v)
+    zero = jnp.zeros_like(data.v)
+    factors = force_factors(model, data, zero, external=external, gravity=gravity)
+    rhs = -_project(model, data, factors)
+    if force is not None:
+        rhs = rhs + force
+    return solve_spd(mass_matrix(model, data), rhs)
+
+
+def _unrolled_acceleration(model: Model, q, v, force, gravity, external):
+    return unrolled.forward_dynamics(model, q, v, force, gravity=gravity, external=external)
+
+
+@functools.lru_cache(maxsize=256)
+def _routed(treedef):
+    """``auto``: the unrolled kernel for one state, the vectorised one for a ``vmap`` batch.
+
+    A ``custom_vmap`` rule sends batched calls to the vectorised kernel (XLA's CPU fusion
+    recomputes the shared subexpressions of a long scalar program once per fused output, which
+    costs more over a batch than the vectorised kernel's few large operations; a single state
+    has no batch to amortise launches, and there the scalar program wins). Derivatives are
+    those of the unrolled kernel (a ``custom_jvp`` over the routing: ``custom_vmap`` has no
+    differentiation rule of its own); both kernels compute the same function.
+    """
+
+    def unrolled_fn(*leaves):
+        return _unrolled_acceleration(*jax.tree.unflatten(treedef, leaves))
+
+    def vectorised_fn(*leaves):
+        return _vectorised_acceleration(*jax.tree.unflatten(treedef, leaves))
+
+    batched = custom_batching.custom_vmap(unrolled_fn)
+
+    @batched.def_vmap
+    def _rule(axis_size, in_batched, *leaves):
+        in_axes = tuple(0 if b else None for b in in_batched)
+        return jax.vmap(vectorised_fn, in_axes=in_axes, axis_size=axis_size)(*leaves), True
+
+    routed = jax.custom_jvp(lambda *leaves: batched(*leaves))
+    routed.defjvp(lambda primals, tangents: jax.jvp(unrolled_fn, primals, tangents))
+    return routed
+
+
+def acceleration(
+    model: Model,
+    q: Float[ArrayLike, " nq"],
+    v: Float[ArrayLike, " nv"],
+    force: Float[ArrayLike, " nv"] | None = None,
+    *,
+    gravity: Float[ArrayLike, "3"] | None = None,
+    external: Float[ArrayLike, "n_body 6"] | None = None,
+    kernel: str | None = None,
+) -> Float[Array, " nv"]:
+    """Forward dynamics from the coordinates: ``a = M⁻¹ (force − bias + Jᵀ external)``.
+
+    The vector-field kernel of :meth:`jaxbody.Model.acceleration`, scenes and
+    :func:`jaxbody.forward_dynamics`; it checks nothing.
+
+    Args:
+        model, q, v: the model and its state.
+        force: total generalized force in the layout of ``v`` (drives, springs, dampers);
+            ``None`` = zero.
+        gravity: uniform acceleration field (world) acting on every body; ``None`` = none.
+        external: ``(n_body, 6)`` world force and torque at each centre of mass.
+        kernel: ``"unrolled"`` (straight-line scalar program, :mod:`jaxbody.unrolled`),
+            ``"vectorised"`` (:class:`Data` and the kernels of this module) or ``"auto"``:
+            the unrolled kernel for single states of trees up to
+            :data:`jaxbody.unrolled.MAX_BODIES` bodies and the vectorised one for ``vmap``
+            batches and larger trees (docs/performance.md). ``None``:
+            :data:`DEFAULT_KERNEL`.
+    """
+    kernel = DEFAULT_KERNEL if kernel is None else kernel
+    if kernel not in KERNELS:
+        raise ValueError(f"kernel must be one of {KERNELS}, got {kernel!r}")
+    dtype = model.body_pos.dtype
+    q = check_shape(q, (model.nq,), "q", dtype=dtype)
+    v = check_shape(v, (model.nv,), "v", dtype=dtype)
+    if force is not None:
+        force = check_shape(force, (model.nv,), "force", dtype=dtype)
+    if gravity is not None:
+        gravity = check_shape(gravity, (3,), "gravity", dtype=dtype)
+    if external is not None:
+        external = check_shape(external, (model.n_body, 6), "external", dtype=dtype)
+    args = (model, q, v, force, gravity, external)
+    if kernel == "vectorised" or (kernel == "auto" and not unrolled.applies(model)):
+        return _vectorised_acceleration(*args)
+    if kernel == "unrolled":
+        return _unrolled_acceleration(*args)
+    leaves, treedef = jax.tree.flatten(args)
+    return _routed(treedef)(*leaves)

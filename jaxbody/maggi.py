@@ -30,8 +30,14 @@ elimination with partial pivoting written in plain array operations (:func:`solv
 *coordinate partitioning*: a column-pivoted QR of ``G`` at a reference state picks the
 ``s`` best-conditioned dependent quasi-velocities; the others are ``ε``. The choice only
 fixes what ``ε`` means: ``ẋ`` and ``Λ`` do not depend on it (docs/maggi.md §4). The pivot
-ratio of the elimination is returned as a conditioning measure; :meth:`ConstrainedSystem.repartition`
-re-chooses the partition at a new state (the phase runner does so at every switch).
+ratio of the elimination is returned as a conditioning measure. Along a solve the partition
+is kept while well conditioned and re-chosen when it degrades: :class:`PartitionSolver`
+compares its quality ``det[E; G]/sqrt(det GGᵀ)`` (M.9a) after every step with that of the
+partition pivoted QR would choose there (the choice is written in array operations, so it
+runs inside ``jit``/``vmap``), and ``jb.simulate`` and :func:`simulate_phases` use it;
+``repartition=False`` stops the solve with ``partition_degraded`` instead.
+:meth:`ConstrainedSystem.repartition` re-chooses the partition by hand (the phase runner
+does so at every switch).
 
 Errors follow the project's three layers: shape and static misuse raise ``ValueError``
 while building; redundant or inconsistent constraints are detected at the reference state
@@ -65,6 +71,7 @@ import optimistix as optx
 from jax import lax
 
 from . import linalg
+from ._solvers import DelegatingSolver
 from ._types import Array, ArrayLike, Float, Scalar
 
 __all__ = [
@@ -88,6 +95,11 @@ __all__ = [
     "Phase",
     "PhasedSolution",
     "simulate_phases",
+    "PartitionSolver",
+    "partition_solver",
+    "partition_report",
+    "with_best_partition",
+    "MAX_RECORDED_REPARTITIONS",
 ]
 
 
@@ -100,6 +112,10 @@ class MaggiResult(eqx.Enumeration):
         "state: redundant or inconsistent constraints, or a degenerate choice of ε"
     )
     singular_reduced_mass = "the reduced mass matrix AᵀDA is not positive definite"
+    partition_degraded = (
+        "the coordinate partition degraded during the solve (its quality fell below "
+        "partition_tolerance times the best partition's) and re-partitioning is off"
+    )
 
 
 #: relative pivot below which the parametrisation counts as singular
@@ -126,33 +142,43 @@ def solve_general(M: Float[ArrayLike, "n n"], B: Float[ArrayLike, "n k"]) -> tup
         ``(X, pivot_ratio)``: the solution and ``min |pivot| / max |M_ij|`` (``0`` for a
         singular ``M``; a conditioning measure, compare with :data:`SINGULAR_PIVOT`).
     """
+    X, ratio, _, _ = _eliminate(M, B)
+    return X, ratio
+
+
+def _eliminate(M, B):
+    """Gauss–Jordan elimination of :func:`solve_general`; also returns ``det M`` as
+    ``(sign, log|det|)`` (product of the pivots and the parity of the row exchanges)."""
     M = jnp.asarray(M)
     B = jnp.asarray(B, M.dtype)
     n = M.shape[0]
     if M.ndim != 2 or M.shape != (n, n) or B.ndim != 2 or B.shape[0] != n:
         raise ValueError(f"solve_general: M must be (n, n) and B (n, k), got {M.shape} and {B.shape}")
     if n == 0:
-        return B, jnp.ones((), M.dtype)
+        return B, jnp.ones((), M.dtype), jnp.ones((), M.dtype), jnp.zeros((), M.dtype)
     scale = jnp.maximum(jnp.max(jnp.abs(M)), jnp.finfo(M.dtype).tiny)
     rows = jnp.arange(n)
 
     def step(k, carry):
-        M, B, smallest = carry
+        M, B, smallest, sign, logdet = carry
         col = jnp.where(rows >= k, jnp.abs(M[:, k]), -1.0)
         p = jnp.argmax(col)
         perm = rows.at[k].set(p).at[p].set(k)
         M, B = M[perm], B[perm]
         pivot = M[k, k]
         smallest = jnp.minimum(smallest, jnp.abs(pivot))
+        sign = sign * jnp.where(p == k, 1.0, -1.0) * jnp.sign(pivot)
+        logdet = logdet + jnp.log(jnp.abs(pivot))
         safe = jnp.where(pivot == 0, jnp.ones_like(pivot), pivot)
         row_m, row_b = M[k] / safe, B[k] / safe
         factor = jnp.where(rows == k, 0.0, M[:, k])
         M = (M - factor[:, None] * row_m[None, :]).at[k].set(row_m)
         B = (B - factor[:, None] * row_b[None, :]).at[k].set(row_b)
-        return M, B, smallest
+        return M, B, smallest, sign, logdet
 
-    _, X, smallest = lax.fori_loop(0, n, step, (M, B, jnp.asarray(jnp.inf, M.dtype)))
-    return X, smallest / scale
+    one, zero = jnp.ones((), M.dtype), jnp.zeros((), M.dtype)
+    _, X, smallest, sign, logdet = lax.fori_loop(0, n, step, (M, B, jnp.asarray(jnp.inf, M.dtype), one, zero))
+    return X, smallest / scale, sign, logdet
 
 
 # ---------------------------------------------------------------------------------------
@@ -371,15 +397,25 @@ class ConstrainedSystem(eqx.Module):
             ``nq``, ``nv``, ``qdot(q, x)``, ``bracket_terms(t, q, x, tau)``, ``total_energy``.
         constraints: tuple of :class:`Constraint`.
         epsilon: user characteristics ``ε(base, t, q, x)`` (n − s,) or ``None`` (partition).
-        free: indices of ``x`` used as ``ε`` by coordinate partitioning (static).
+        free: indices of ``x`` used as ``ε`` by coordinate partitioning, an integer array
+            (n − s,) (a tuple is converted); data, not structure, so a solve can change it
+            without recompiling.
         baumgarte: stabilisation rate ``ω`` in 1/s (``0``: off).
+        repartitioning: re-choose the partition inside a solve when it degrades (see
+            :func:`partition_solver`); ``False``: keep it and stop the solve with the result
+            code ``partition_degraded`` when it degrades.
+        partition_tolerance: the partition counts as degraded when its quality
+            (:meth:`partition_quality`) falls below ``partition_tolerance`` times the quality
+            of the partition pivoted QR chooses at the same state, or when its sign changes.
     """
 
     base: Any
     constraints: tuple
     epsilon: Callable | None = eqx.field(static=True)
-    free: tuple[int, ...] = eqx.field(static=True)
+    free: Array = eqx.field(converter=lambda f: jnp.asarray(f, dtype=jnp.int32))
     baumgarte: Array
+    repartitioning: bool = eqx.field(static=True, default=True)
+    partition_tolerance: float = eqx.field(static=True, default=0.1)
 
     @property
     def nq(self) -> int:
@@ -431,16 +467,53 @@ class ConstrainedSystem(eqx.Module):
         """``ε(t, q, x)`` (n − s,)."""
         if self.epsilon is not None:
             return jnp.reshape(self.epsilon(self.base, t, q, x), (self.nv - self.n_constraint,))
-        return jnp.asarray(x)[jnp.asarray(self.free, dtype=jnp.int32)]
+        return self._selection(x) @ jnp.asarray(x)
+
+    def _selection(self, x) -> Array:
+        """``E = ∂ε/∂x`` of the partition: one-hot rows (n − s, n) (a product, not a gather:
+        the partition changes inside a solve, and XLA's dynamic gathers are slow on CPU)."""
+        return (self.free[:, None] == jnp.arange(self.nv, dtype=self.free.dtype)[None, :]).astype(jnp.asarray(x).dtype)
 
     def parametrisation(self, t, q, x) -> tuple[Array, Array, Array]:
         """``(A, K, pivot_ratio)`` with ``[A | K] = (∂ε̃/∂x)⁻¹`` (M.8–M.9)."""
         n, s = self.nv, self.n_constraint
-        E = jax.jacfwd(lambda xx: self.characteristics(t, q, xx))(x)
+        if self.epsilon is None:
+            E = self._selection(x)
+        else:
+            E = jax.jacfwd(lambda xx: self.characteristics(t, q, xx))(x)
         G = self.constraint_jacobian(t, q, x)
         J = jnp.concatenate([E, G], axis=0) if s else E
         AK, ratio = solve_general(J, jnp.eye(n, dtype=J.dtype))
         return AK[:, : n - s], AK[:, n - s :], ratio
+
+    @property
+    def partitioned(self) -> bool:
+        """``ε`` chosen by coordinate partitioning (not given), with something to choose."""
+        return self.epsilon is None and 0 < self.n_constraint < self.nv
+
+    def partition_quality(self, t, q, x) -> Array:
+        """Signed quality of the coordinate partition at ``(t, q, x)`` (docs/maggi.md M.9a).
+
+        ``det[E; G] / sqrt(det(G·Gᵀ))``: its magnitude is ``|det G_d| / sqrt(det(G·Gᵀ))``,
+        ``G_d`` the columns of ``G`` of the dependent quasi-velocities, which equals
+        ``1/sqrt(det(AᵀA))`` and lies in ``[0, 1]`` (``1``: the dependent velocities are
+        exactly the constraint directions; ``0``: ``[E; G]`` is singular). Unchanged by
+        scaling or combining the constraint rows; the sign is constant while the partition
+        stays valid, so a sign change means the motion crossed a singular state.
+        """
+        if not self.partitioned:
+            return jnp.ones((), jnp.asarray(x).dtype)
+        return _quality(self._selection(x), self.constraint_jacobian(t, q, x))
+
+    def best_partition(self, t, q, x) -> Array:
+        """The free quasi-velocities that column-pivoted QR of ``G`` chooses at ``(t, q, x)``
+        (ascending indices, (n − s,)); written in array operations (no LAPACK), so it runs
+        inside ``jit`` and ``vmap``."""
+        return _pivoted_free(self.constraint_jacobian(t, q, x))
+
+    def with_partition(self, free) -> "ConstrainedSystem":
+        """The same system with the free quasi-velocities ``free``."""
+        return eqx.tree_at(lambda s: s.free, self, jnp.asarray(free, dtype=jnp.int32))
 
     def solve(self, t, q, x, tau=None, *, stabilise=False) -> MaggiSolution:
         """Reduced dynamics (M.11), reactions (M.12) at ``(t, q, x)``.
@@ -502,14 +575,13 @@ class ConstrainedSystem(eqx.Module):
     def _on_scene(self, ctx) -> "ConstrainedSystem":
         """This system with the scene's model as base, so that the scene's parameters (not
         a copy made when the constraints were built) are the ones evaluated and differentiated."""
+        return self._on_model(getattr(ctx.scene, "system", None))
+
+    def _on_model(self, model) -> "ConstrainedSystem":
         from .model import Model
 
-        model = getattr(ctx.scene, "system", None)
         if isinstance(self.base, ModelBase) and isinstance(model, Model) and model is not self.base.model:
-            return ConstrainedSystem(
-                base=ModelBase(model), constraints=self.constraints, epsilon=self.epsilon, free=self.free,
-                baumgarte=self.baumgarte,
-            )
+            return eqx.tree_at(lambda s: s.base, self, ModelBase(model))
         return self
 
     def accelerations(self, ctx, mass_matrix, force) -> tuple[Array, Array]:
@@ -551,23 +623,55 @@ def _solve_jit(system, t, q, x, tau, stabilise):
 
 
 def _with_free(system, free):
-    return ConstrainedSystem(
-        base=system.base, constraints=system.constraints, epsilon=system.epsilon, free=tuple(free),
-        baumgarte=system.baumgarte,
-    )
+    return system.with_partition(free)
+
+
+def _quality(E, G) -> Array:
+    """Signed partition quality ``det[E; G] / sqrt(det(G·Gᵀ))`` (see
+    :meth:`ConstrainedSystem.partition_quality`); ``0`` where ``[E; G]`` is singular."""
+    J = jnp.concatenate([E, G], axis=0)
+    _, ratio, sign, logdet = _eliminate(J, jnp.zeros((J.shape[0], 0), J.dtype))
+    _, _, _, loggram = _eliminate(G @ G.T, jnp.zeros((G.shape[0], 0), J.dtype))
+    quality = sign * jnp.exp(jnp.minimum(logdet - 0.5 * loggram, 0.0))
+    return jnp.where(ratio > SINGULAR_PIVOT, quality, 0.0)
+
+
+def _pivoted_free(G) -> Array:
+    """Column-pivoted QR (Businger–Golub) of ``G`` (s, n), choice of columns only: ``s``
+    times, take the column of largest remaining norm as dependent and remove its direction
+    from the others (modified Gram–Schmidt). Returns the other ``n − s`` column indices,
+    ascending. Plain array operations (no LAPACK: safe under ``vmap`` on CPU)."""
+    s, n = G.shape
+    if s == 0:
+        return jnp.arange(n, dtype=jnp.int32)
+    tiny = jnp.finfo(G.dtype).tiny
+
+    def step(_, carry):
+        R, chosen = carry
+        norms = jnp.where(chosen, -1.0, jnp.sum(R * R, axis=0))
+        j = jnp.argmax(norms)
+        u = R[:, j] / jnp.sqrt(jnp.maximum(norms[j], tiny))
+        R = R - u[:, None] * (u @ R)[None, :]
+        return R, chosen.at[j].set(True)
+
+    _, chosen = lax.fori_loop(0, s, step, (G, jnp.zeros((n,), bool)))
+    return jnp.argsort(chosen.astype(jnp.int32), stable=True)[: n - s].astype(jnp.int32)
 
 
 def _partition(system, t, q, x) -> tuple[int, ...]:
     """Free quasi-velocities by a column-pivoted QR of ``G`` at a reference state."""
-    import scipy.linalg
-
     n, s = system.nv, system.n_constraint
     if s == 0:
         return tuple(range(n))
-    G = np.asarray(system.constraint_jacobian(t, q, x), dtype=np.float64)
-    _, _, piv = scipy.linalg.qr(G, pivoting=True, mode="economic")
-    dependent = set(int(i) for i in piv[:s])
-    return tuple(i for i in range(n) if i not in dependent)
+    q = jnp.asarray(q)
+    dtype = q.dtype if jnp.issubdtype(q.dtype, jnp.inexact) else jnp.result_type(float)
+    t, q, x = jnp.asarray(t, dtype), q.astype(dtype), jnp.asarray(x, dtype)
+    return tuple(int(i) for i in np.asarray(_best_free_jit(system, t, q, x)))
+
+
+@eqx.filter_jit
+def _best_free_jit(system, t, q, x):
+    return system.best_partition(t, q, x)
 
 
 def check_constraints(system: ConstrainedSystem, q, x=None, t=0.0, *, rtol: float = 1e-9) -> None:
@@ -612,6 +716,8 @@ def constrain(
     t_ref: float = 0.0,
     epsilon: Callable | None = None,
     baumgarte: float = 10.0,
+    repartition: bool = True,
+    partition_tolerance: float = 0.1,
 ) -> ConstrainedSystem:
     """Add constraints to a base system (docs/maggi.md §3–4).
 
@@ -624,10 +730,16 @@ def constrain(
         epsilon: user characteristics ``ε(base, t, q, x)`` returning ``n − s`` values, such
             that ``(ε, f*)`` is solvable for ``x``; ``None``: coordinate partitioning.
         baumgarte: stabilisation rate ``ω`` (1/s) of the constraint residuals.
+        repartition: with coordinate partitioning, re-choose the partition during a solve
+            when it degrades (``False``: stop the solve with ``partition_degraded`` instead).
+        partition_tolerance: in ``(0, 1)``; the partition degrades when its quality falls
+            below this fraction of the quality of the best (pivoted-QR) partition at the
+            current state (docs/maggi.md §4).
 
     Raises:
-        ValueError: redundant or inconsistent constraints at the reference state, or an
-            ``epsilon`` of the wrong size / not completing ``f*`` to an invertible set.
+        ValueError: redundant or inconsistent constraints at the reference state, an
+            ``epsilon`` of the wrong size / not completing ``f*`` to an invertible set, or a
+            ``partition_tolerance`` outside ``(0, 1)``.
     """
     from .model import Model
 
@@ -644,9 +756,12 @@ def constrain(
     dtype = q_ref.dtype if jnp.issubdtype(q_ref.dtype, jnp.inexact) else jnp.result_type(float)
     q_ref = q_ref.astype(dtype)
     x_ref = jnp.zeros((base.nv,), dtype) if x_ref is None else jnp.asarray(x_ref, dtype)
+    tol = float(partition_tolerance)
+    if not 0.0 < tol < 1.0:
+        raise ValueError(f"constrain: partition_tolerance must lie in (0, 1), got {partition_tolerance!r}")
     system = ConstrainedSystem(
         base=base, constraints=constraints, epsilon=epsilon, free=tuple(range(base.nv)),
-        baumgarte=jnp.asarray(baumgarte, dtype),
+        baumgarte=jnp.asarray(baumgarte, dtype), repartitioning=bool(repartition), partition_tolerance=tol,
     )
     check_constraints(system, q_ref, x_ref, t_ref)
     if epsilon is None:
@@ -773,7 +888,8 @@ def reactions(system: ConstrainedSystem, t, q, x, tau=None) -> Array:
 
 @eqx.filter_jit
 def _reactions(system, t, q, x, tau):
-    return jax.vmap(lambda tt, qq, xx: system._solve(tt, qq, xx, tau, False).reactions)(t, q, x)
+    # Λ does not depend on the partition: evaluate each state with its best-conditioned one
+    return jax.vmap(lambda tt, qq, xx: with_best_partition(system, tt, qq, xx)._solve(tt, qq, xx, tau, False).reactions)(t, q, x)
 
 
 def constraint_residuals(system: ConstrainedSystem, t, q, x) -> tuple[Array, Array]:
@@ -792,6 +908,150 @@ def _residuals(system, t, q, x):
 @eqx.filter_jit
 def _energies(system, q, x):
     return jax.vmap(system.total_energy)(q, x)
+
+
+# ---------------------------------------------------------------------------------------
+# Re-partitioning during a solve
+# ---------------------------------------------------------------------------------------
+
+#: re-partition times recorded per solve (the count goes on beyond them)
+MAX_RECORDED_REPARTITIONS = 16
+
+
+def _constrained_of(args):
+    """The automatically partitioned :class:`ConstrainedSystem` that a solve's ``args``
+    evaluate (a :class:`jaxbody.Scene`, ``(scene, ...)`` or a system), bound to the scene's
+    model; ``None`` when there is none."""
+    from .scene import Scene
+
+    obj = args[0] if isinstance(args, tuple) and args else args
+    if isinstance(obj, Scene):
+        cs = obj.constraints
+        cs = cs._on_model(obj.system) if isinstance(cs, ConstrainedSystem) else None
+    else:
+        cs = obj if isinstance(obj, ConstrainedSystem) else None
+    return cs if cs is not None and cs.partitioned else None
+
+
+def _is_system(node) -> bool:
+    return isinstance(node, ConstrainedSystem)
+
+
+def _set_partition(args, free):
+    """``args`` with every :class:`ConstrainedSystem` in it using the partition ``free``."""
+    return jax.tree.map(lambda n: n.with_partition(free) if _is_system(n) else n, args, is_leaf=_is_system)
+
+
+def with_best_partition(obj, t, q, x):
+    """``obj`` (a scene, a system, or a tuple holding one) with the partition that pivoted
+    QR chooses at ``(t, q, x)``: the best-conditioned evaluation of one state (outputs
+    such as the reactions along a solution, which do not depend on the partition)."""
+    cs = _constrained_of(obj)
+    if cs is None:
+        return obj
+    return _set_partition(obj, lax.stop_gradient(cs.best_partition(t, lax.stop_gradient(q), lax.stop_gradient(x))))
+
+
+def _partition_check(cs, t, q, x, sign):
+    """``(degraded, quality, best, best_quality)`` of the current partition of ``cs`` at a state;
+    ``sign`` is the sign of the quality when last checked (``0``: unknown)."""
+    t, q, x = lax.stop_gradient((t, q, x))
+    G = cs.constraint_jacobian(t, q, x)
+    best = _pivoted_free(G)
+    c = _quality(cs._selection(x), G)
+    cb = _quality(cs.with_partition(best)._selection(x), G)
+    flipped = (sign != 0) & (jnp.sign(c) != sign)
+    degraded = (jnp.abs(c) < cs.partition_tolerance * jnp.abs(cb)) | flipped | ~jnp.isfinite(c)
+    return degraded, c, best, cb
+
+
+class PartitionSolver(DelegatingSolver):
+    """A diffrax solver that keeps the coordinate partition of a constrained system while it
+    is well conditioned and re-chooses it when it degrades (docs/maggi.md §4).
+
+    The partition (the integer array ``free`` of the :class:`ConstrainedSystem` in the
+    solve's ``args``) is carried in the solver state. After every step the quality of the
+    current partition at the step's end (:meth:`ConstrainedSystem.partition_quality`) is
+    compared with that of the partition pivoted QR chooses there; when it falls below
+    ``partition_tolerance`` times it, or changes sign (the step crossed a singular state),
+    the next steps use the new partition (``repartition=True``) or the solve stops with a
+    failed result that :func:`partition_report` reads as ``partition_degraded``
+    (``repartition=False``). The state ``(q, x)`` is never touched: ``ẋ`` does not depend on
+    the partition, so the solution is the same continuous one; only ``A``, ``K`` and the
+    meaning of ``ε`` change, at the recorded times. Rejected steps change nothing.
+    The error estimate and step control are the wrapped solver's.
+
+    Attributes:
+        solver: the wrapped diffrax solver.
+        repartition: re-choose (``True``) or stop (``False``) on degradation.
+    """
+
+    repartition: bool = eqx.field(static=True, default=True)
+
+    def init(self, terms, t0, t1, y0, args):
+        cs = _constrained_of(args)
+        t0 = jnp.asarray(t0, y0[1].dtype)
+        degraded, c, best, cb = _partition_check(cs, t0, y0[0], y0[1], jnp.zeros((), y0[1].dtype))
+        times = jnp.full((MAX_RECORDED_REPARTITIONS,), jnp.nan, y0[1].dtype)
+        if self.repartition:
+            changed = degraded & jnp.any(best != cs.free)
+            free = jnp.where(degraded, best, cs.free)
+            sign = jnp.sign(jnp.where(degraded, cb, c))
+            times = jnp.where(changed, times.at[0].set(t0), times)
+            count = changed.astype(jnp.int32)
+            bad = jnp.zeros((), bool)
+        else:
+            free, sign, count, bad = cs.free, jnp.sign(c), jnp.zeros((), jnp.int32), degraded
+        inner = self.inner.init(terms, t0, t1, y0, _set_partition(args, free))
+        # integers in the carried state are held as floats: an integer leaf that changes
+        # inside diffrax's checkpointed loop makes every step markedly slower on CPU
+        return inner, free.astype(sign.dtype), sign, count.astype(sign.dtype), times, bad.astype(sign.dtype)
+
+    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        inner, free, sign, count, times, bad = solver_state
+        dtype = sign.dtype
+        free, count, bad = free.astype(jnp.int32), count.astype(jnp.int32), bad > 0
+        args = _set_partition(args, free)
+        y1, err, dense, inner, result = self.inner.step(terms, t0, t1, y0, args, inner, made_jump)
+        t1 = jnp.asarray(t1, times.dtype)
+        degraded, c, best, cb = _partition_check(_constrained_of(args), t1, y1[0], y1[1], sign)
+        if self.repartition:
+            changed = degraded & jnp.any(best != free)
+            slot = jnp.minimum(count, MAX_RECORDED_REPARTITIONS - 1)
+            times = jnp.where(changed & (count < MAX_RECORDED_REPARTITIONS), times.at[slot].set(t1), times)
+            count = count + changed.astype(jnp.int32)
+            free = jnp.where(degraded, best, free)
+            sign = jnp.sign(jnp.where(degraded, cb, c))
+        else:
+            bad = bad | degraded
+            sign = jnp.sign(c)
+            ok = result == diffrax.RESULTS.successful
+            result = diffrax.RESULTS.where(bad & ok, diffrax.RESULTS.singular, result)
+        return y1, err, dense, (inner, free.astype(dtype), sign, count.astype(dtype), times, bad.astype(dtype)), result
+
+
+def partition_solver(solver, system, adjoint=None):
+    """Wrap ``solver`` in a :class:`PartitionSolver` when ``system`` (a scene or a
+    :class:`ConstrainedSystem`) has constraints with an automatic partition; ``solver``
+    itself otherwise, and under ``diffrax.BacksolveAdjoint`` (whose backward solve has
+    another state: the partition is then the one given)."""
+    cs = _constrained_of(system)
+    if cs is None or isinstance(adjoint, diffrax.BacksolveAdjoint):
+        return solver
+    return PartitionSolver(solver, repartition=cs.repartitioning)
+
+
+def partition_report(solver, solver_state) -> dict | None:
+    """What a :class:`PartitionSolver` did in a solve, from the final solver state
+    (``diffrax.SaveAt(solver_state=True)``): ``{"num_repartitions": int array,
+    "repartition_times": (MAX_RECORDED_REPARTITIONS,) with NaN for unused slots,
+    "partition": the free quasi-velocities at the end, "degraded": bool}``; ``None`` for
+    other solvers."""
+    if not isinstance(solver, PartitionSolver) or solver_state is None:
+        return None
+    _, free, _, count, times, bad = solver_state
+    return {"num_repartitions": count.astype(jnp.int32), "repartition_times": times,
+            "partition": free.astype(jnp.int32), "degraded": bad > 0}
 
 
 # ---------------------------------------------------------------------------------------
@@ -875,7 +1135,11 @@ class Phase(eqx.Module):
 
 class PhasedSolution(eqx.Module):
     """Result of :func:`simulate_phases`: saved states of every phase (concatenated) and the
-    switch reports. ``phase`` says which phase each saved point belongs to."""
+    switch reports. ``phase`` says which phase each saved point belongs to.
+    ``num_repartitions`` and ``repartition_times`` count and list the changes of coordinate
+    partition inside the phases (the choice made at each switch is not counted); ``result``
+    is :attr:`MaggiResult.partition_degraded` when a phase with ``repartition=False``
+    stopped on a degraded partition (the solution then ends there), else ``successful``."""
 
     t: Array
     q: Array
@@ -885,6 +1149,9 @@ class PhasedSolution(eqx.Module):
     energy: Array
     switches: tuple
     switch_times: Array
+    num_repartitions: Array
+    repartition_times: Array
+    result: MaggiResult
 
 
 def _event_cond(cond):
@@ -914,18 +1181,23 @@ def simulate_phases(
     state function, located by diffrax's event handling with a Newton root finder) or
     ``t1``; at the switch the velocities are projected on the next system's constraints by
     :func:`switch_constraints` and the partition of the next system is re-chosen at the
-    switch state. Saved points: ``n_save`` evenly spaced times over ``[t0, t1]`` that fall
-    in each phase, plus every phase's start and end.
+    switch state. Inside a phase the partition is kept while well conditioned and re-chosen
+    when it degrades (:class:`PartitionSolver`; counted in ``num_repartitions``); a system
+    built with ``repartition=False`` ends the run there with ``result =
+    partition_degraded``. Saved points: ``n_save`` evenly spaced times over ``[t0, t1]`` that
+    fall in each phase, plus every phase's start and end.
 
     Raises:
         ValueError: the initial velocities violate the first phase's constraints (unless
             ``project_initial``).
+        RuntimeError: a phase's solve failed (step budget, step size), naming the phase.
     """
     q = jnp.asarray(q0)
     x = jnp.asarray(x0, q.dtype)
     t = float(t0)
     grid = np.linspace(t0, t1, n_save)
     ts, qs, vs, ph, lams, energies, reports, switch_t = [], [], [], [], [], [], [], []
+    n_rep, rep_times, degraded = 0, [], False
     q, x, _ = initial_state(phases[0].system, q, x, t, project_initial=project_initial)
     for k, phase in enumerate(phases):
         system = phase.system
@@ -946,7 +1218,16 @@ def simulate_phases(
             continue
         inner = grid[(grid > t) & (grid < t_end)]
         save_ts = np.concatenate([[t], inner])
-        sol = _phase_solve(system, (q, x), t, t_end, jnp.asarray(save_ts, q.dtype), rtol, atol, max_steps, event)
+        solver = partition_solver(diffrax.Tsit5(), system)
+        sol = _phase_solve(system, (q, x), t, t_end, jnp.asarray(save_ts, q.dtype), rtol, atol, max_steps, event, solver)
+        report = partition_report(solver, sol.solver_state)
+        if report is not None:
+            n_rep += int(report["num_repartitions"])
+            rt = np.asarray(report["repartition_times"])
+            rep_times.extend(rt[np.isfinite(rt)].tolist())
+            degraded = degraded or bool(report["degraded"])
+        if not degraded and not bool(np.asarray((sol.result == diffrax.RESULTS.successful) | (sol.result == diffrax.RESULTS.event_occurred))):
+            raise RuntimeError(f"simulate_phases: phase {k} failed: {diffrax.RESULTS[sol.result]}")
         tt = np.asarray(sol.ts)
         q_all, x_all = np.asarray(sol.ys[0]), np.asarray(sol.ys[1])
         # saves before an event, then the end of the phase (the t1 save: the event time if one
@@ -962,7 +1243,7 @@ def simulate_phases(
         lams.append(np.asarray(reactions(system, jnp.asarray(tt), jnp.asarray(q_all), jnp.asarray(x_all))))
         energies.append(np.asarray(_energies(system, jnp.asarray(q_all), jnp.asarray(x_all))))
         q, x, t = q_end, x_end, t_stop
-        if t >= float(t1) - 1e-14:
+        if degraded or t >= float(t1) - 1e-14:
             break
     return PhasedSolution(
         t=jnp.asarray(np.concatenate(ts)),
@@ -973,6 +1254,9 @@ def simulate_phases(
         energy=jnp.asarray(np.concatenate(energies)),
         switches=tuple(reports),
         switch_times=jnp.asarray(np.asarray(switch_t, dtype=np.float64)),
+        num_repartitions=jnp.asarray(n_rep),
+        repartition_times=jnp.asarray(np.asarray(rep_times, dtype=np.float64)),
+        result=MaggiResult.where(jnp.asarray(degraded), MaggiResult.partition_degraded, MaggiResult.successful),
     )
 
 
@@ -982,17 +1266,18 @@ def _vf(t, y, system):
 
 
 @eqx.filter_jit
-def _phase_solve(system, y0, t0, t1, save_ts, rtol, atol, max_steps, event):
+def _phase_solve(system, y0, t0, t1, save_ts, rtol, atol, max_steps, event, solver):
     return diffrax.diffeqsolve(
         diffrax.ODETerm(_vf),
-        diffrax.Tsit5(),
+        solver,
         t0,
         t1,
         None,
         y0,
         args=system,
-        saveat=diffrax.SaveAt(ts=save_ts, t1=True),
+        saveat=diffrax.SaveAt(ts=save_ts, t1=True, solver_state=isinstance(solver, PartitionSolver)),
         stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
         max_steps=max_steps,
         event=event,
+        throw=False,
     )

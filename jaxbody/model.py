@@ -117,11 +117,13 @@ class Model(eqx.Module):
 
         ``M v̇ + bias = tau + passive``; no value checks (safe inside a vmapped solver loop).
         """
-        from .data import compute_data
-        from .kernels import forward_dynamics
+        from .kernels import acceleration, passive_forces_at
 
         del t  # autonomous: time enters only through tau
-        return forward_dynamics(self, compute_data(self, q, v), tau, include_passive=True)
+        force = passive_forces_at(self, q, v)
+        if tau is not None:
+            force = force + tau
+        return acceleration(self, q, v, force, gravity=self.gravity)
 
     def total_energy(self, q: Float[Array, " nq"], v: Float[Array, " nv"]) -> Float[Array, ""]:
         """Kinetic plus gravity and joint-spring potential energy (no checks)."""

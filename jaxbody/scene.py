@@ -156,6 +156,7 @@ class Scene(eqx.Module):
     plane: Float[Array, "2 3"] | None = None
     axis_sign: tuple[float, ...] = eqx.field(static=True, default=())
     path: str = eqx.field(static=True, default="system")
+    kernel: str | None = eqx.field(static=True, default=None)
 
     # ------------------------------------------------------------------ structure
     @property
@@ -276,6 +277,8 @@ class Scene(eqx.Module):
 
         ``tau`` is an extra generalized force (counted in the actuation work when present).
         """
+        if self._direct():
+            return self._evaluate_direct(t, q, v, tau)
         ctx = self.context(t, q, v)
         forces = [e.generalized_force(ctx) for e in self.effects]
         if self.path == "system":
@@ -320,6 +323,45 @@ class Scene(eqx.Module):
             else:
                 a, reaction = self.constraints.accelerations(ctx, M, total - bias)
         return a, tuple(powers), reaction
+
+    def _direct(self) -> bool:
+        """Whether the vector field can run :func:`jaxbody.kernels.acceleration` directly.
+
+        True on the unconstrained spatial path when every effect is a uniform gravity field or
+        a joint-space force (springs, dampers, actuation): those need no kinematics of their
+        own, gravity enters the kernel as the ground's acceleration, and nothing is computed
+        twice. Body loads, support motion, constraints and effects of unknown kind go through
+        the shared kinematics of :meth:`context`.
+        """
+        return (
+            self.path == "spatial"
+            and self.constraints is None
+            and all(isinstance(e, (Gravity, JointSprings, JointDampers, Actuation)) for e in self.effects)
+        )
+
+    def _evaluate_direct(self, t, q, v, tau):
+        from .kernels import acceleration
+
+        ctx = EffectContext(self, t, q, v)
+        gravity = None
+        total = None
+        powers = []
+        for e in self.effects:
+            if isinstance(e, Gravity):
+                g = jnp.asarray(e.vector, v.dtype)
+                gravity = g if gravity is None else gravity + g
+                continue
+            f = e.generalized_force(ctx)
+            total = f if total is None else total + f
+            if not e.conservative:
+                powers.append(jnp.dot(f, v))
+        if tau is not None:
+            total = tau if total is None else total + tau
+            if "actuation" in self.work_names:
+                i = self.work_names.index("actuation")
+                powers[i] = powers[i] + jnp.dot(tau, v)
+        a = acceleration(self.system, q, v, total, gravity=gravity, kernel=self.kernel)
+        return a, tuple(powers), None
 
     def acceleration(
         self, t, q: Float[Array, " nq"], v: Float[Array, " nv"], tau: Float[Array, " nv"] | None = None
@@ -385,6 +427,7 @@ def scene(
     constraints: Any = None,
     effects: Sequence[Effect] = (),
     planar: bool | None = None,
+    kernel: str | None = None,
 ) -> Scene:
     """Build a :class:`Scene`: ``system`` plus the effects declared here, nothing else.
 
@@ -416,6 +459,10 @@ def scene(
         effects: further effect modules (contact, limits, ...), appended in order.
         planar: ``None`` chooses the planar absolute-angle path when the model allows it;
             ``False`` forces the spatial path; ``True`` requires the planar path.
+        kernel: forward-dynamics kernel of the spatial path (:func:`jaxbody.kernels.acceleration`):
+            ``None`` (:data:`jaxbody.kernels.DEFAULT_KERNEL`, the vectorised kernel), ``"auto"``
+            (the unrolled kernel for single states of small trees, the vectorised one for
+            batches and large trees), ``"unrolled"`` or ``"vectorised"``.
 
     Returns:
         The scene.
@@ -426,6 +473,10 @@ def scene(
     """
     if isinstance(system, Scene):
         raise ValueError("scene: system is already a Scene")
+    from .kernels import KERNELS
+
+    if kernel is not None and kernel not in KERNELS:
+        raise ValueError(f"scene: kernel must be one of {KERNELS}, got {kernel!r}")
     declared: list[Effect] = []
     if not isinstance(system, Model):
         for name, val in (("springs", springs), ("dampers", dampers), ("loads", loads), ("support", support), ("constraints", constraints)):
@@ -498,7 +549,7 @@ def scene(
         psys, plane, signs = converted
         out = Scene(system=model, effects=tuple(declared), planar=psys, plane=plane, axis_sign=signs, path="planar")
     else:
-        out = Scene(system=model, effects=tuple(declared), constraints=constraints, path="spatial")
+        out = Scene(system=model, effects=tuple(declared), constraints=constraints, path="spatial", kernel=kernel)
     for e in out.effects:
         e.check(out)
     return out
@@ -579,6 +630,25 @@ class Phases(eqx.Module):
     """An ordered list of scenes switched by events: phase ``i`` runs until ``events[i]``
     triggers, then phase ``i + 1`` starts from that state (mapped by ``transitions[i]``
     ``(t, q, v) -> (q, v)`` when given). The last phase runs to ``t1``.
+
+    When the scene of phase ``i + 1`` has Maggi constraints (``jb.scene(model, constraints=...)``
+    or a :class:`jaxbody.maggi.ConstrainedSystem`), the velocities entering it are projected onto
+    them as an impulsive constraint in the kinetic metric, ``x⁺ = A(AᵀDA)⁻¹AᵀD·x⁻``
+    (:func:`jaxbody.maggi.switch_constraints`); a looser constraint set keeps the velocity.
+    ``jb.simulate(phases, q0, v0, t1)`` checks ``v0`` against the first phase's constraints
+    and returns one :class:`jaxbody.Solution` for the whole run: the work of the
+    non-conservative effects carried across the switches, the energy change at each switch in
+    ``stats["switch_energy_jump"]`` and ``work["switches"]`` (so the energy balance closes),
+    the energy lost by each projection in ``stats["switch_energy_lost"]``, the phase of each
+    saved time in ``stats["phase"]``, and reactions and constraint residuals padded with NaN to
+    the largest number of constraint rows over the phases.
+
+    Attributes:
+        scenes: the phases' scenes (same ``nq`` and ``nv``).
+        events: ``len(scenes) − 1`` :class:`Event` (or callables ``g(t, q, v)``); ``events[i]``
+            ends phase ``i``.
+        transitions: optional maps ``(t, q, v) -> (q, v)`` applied at each switch, before the
+            projection onto the next constraints.
     """
 
     scenes: tuple

@@ -11,14 +11,33 @@ the simulation protocol is wrapped as is). It returns a :class:`Solution` pytree
 
 Errors come in three layers. Shapes, unknown names and impossible options raise ``ValueError``
 before anything is traced. Values (NaN or infinite initial states or parameters, negative
-masses) are checked once at this boundary: with concrete inputs a ``ValueError`` names the
-input at fault; under ``jit``/``vmap`` the check is an ``eqx.error_if`` (``throw=True``) or the
-result code ``RESULTS.invalid_input`` (``throw=False``: that member integrates a frozen state and
-the others are untouched). Inside the solver loop there are only result codes: a NaN trial stage
-is a rejected step, and a failed solve either raises a :class:`SimulationError` saying when, in
-which state and why (``throw=True``) or returns the trajectory up to the failure with its code.
+masses, initial velocities that violate the scene's constraints) are checked once at this
+boundary: with concrete inputs a ``ValueError`` names the input (or the constraint rows) at
+fault; under ``jit``/``vmap`` the check is an ``eqx.error_if`` with the same message
+(``throw=True``) or the result code ``RESULTS.invalid_input`` (``throw=False``: that member
+integrates a frozen state and the others are untouched). Inside the solver loop there are only
+result codes: a NaN trial stage is a rejected step, a fixed step that ends in NaN/inf stops the
+solve there (``RESULTS.nonfinite``), and a failed solve either raises a
+:class:`SimulationError` saying when (``t = ...``), in which state (``q``, ``v`` there) and why
+(``throw=True``; under ``jit`` the same text arrives as JAX's runtime error, raised from a host
+callback) or returns the trajectory up to the failure with its code, ``t_final``, ``q_final``
+and ``v_final`` marking where it stopped.
+
+Phases. A :class:`jaxbody.Phases` runs its scenes one after the other, each until its event;
+at a switch the optional transition maps the state, and a scene with Maggi constraints receives
+velocities projected onto them as an impulsive constraint (kinetic metric). The phases are
+joined into one :class:`Solution`: the work of every non-conservative effect is one state
+vector carried across the switches; the energy change at each switch (the energy an impulsive
+constraint takes, or the change of the energy function when the conservative effects differ)
+is reported per switch in ``stats["switch_energy_jump"]`` and accumulated in
+``work["switches"]``, so ``energy_balance`` closes across the whole run while the jumps stay
+visible; reactions and constraint residuals of phases with different numbers of constraint
+rows are padded with NaN to the largest count (``layout["phase_constraint_names"]`` names each
+phase's rows).
 """
 
+import dataclasses
+import functools
 import json
 import math
 from collections.abc import Callable, Sequence
@@ -30,10 +49,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
+from jax import lax
 
+from . import maggi
+
+from ._solvers import DelegatingSolver, for_adjoint
 from ._types import Array, ArrayLike, Float, Int, Scalar
 from .scene import Event, Phases, Scene, scene as build_scene
 from .effects import Actuation
+from .maggi import PartitionSolver, partition_report, partition_solver, with_best_partition
 
 __all__ = [
     "DynamicalSystem",
@@ -70,7 +94,14 @@ class DynamicalSystem(Protocol):
 class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     """diffrax's result codes plus the boundary check of :func:`simulate`."""
 
-    invalid_input = "The initial state or a parameter is NaN/inf or invalid (checked before the solve)."
+    invalid_input = (
+        "The initial state or a parameter is NaN/inf or invalid (checked before the solve: finite values, "
+        "non-negative masses, initial velocities admissible for the scene's constraints)."
+    )
+    partition_degraded = (
+        "The coordinate partition of the constraints degraded (quality below partition_tolerance times the "
+        "best partition's) and re-partitioning is off (jaxbody.maggi.constrain(..., repartition=False))."
+    )
 
 
 class SimulationError(RuntimeError):
@@ -128,46 +159,47 @@ class SemiImplicitEuler(diffrax.AbstractSolver):
         return terms.vf(t0, y0, args)
 
 
-class _Projected(diffrax.AbstractAdaptiveSolver, diffrax.AbstractWrappedSolver):
-    """Wraps a solver and projects every step's end state (unit quaternions).
+class _Guarded(DelegatingSolver):
+    """Wraps a solver: projects every step's end state (unit quaternions) and flags a
+    non-finite one.
 
     Projection after each step keeps ball/free quaternions on the unit sphere to rounding,
-    while the error estimate (and so the step control) is the wrapped solver's.
+    while the error estimate (and so the step control) is the wrapped solver's. A step whose
+    end state is NaN or inf returns diffrax's ``nonfinite`` code: an adaptive controller
+    rejects that step anyway (its error estimate is not finite) and tries a smaller one, but a
+    fixed step is accepted, so the solve stops there (``t_final``, ``q_final``, ``v_final`` show
+    the first non-finite state) instead of carrying NaN to ``t1`` and calling that a success. ``isinstance`` checks (adaptive,
+    implicit) are forwarded to the wrapped solver by diffrax.
     """
 
-    solver: diffrax.AbstractSolver
-    project: Callable
+    project: Any = None
 
-    @property
-    def term_structure(self):
-        return self.solver.term_structure
-
-    @property
-    def interpolation_cls(self):  # pyright: ignore
-        return self.solver.interpolation_cls
-
-    @property
-    def term_compatible_contr_kwargs(self):
-        return self.solver.term_compatible_contr_kwargs
-
-    def order(self, terms):
-        return self.solver.order(terms)
-
-    def strong_order(self, terms):
-        return self.solver.strong_order(terms)
-
-    def error_order(self, terms):
-        return self.solver.error_order(terms) if hasattr(self.solver, "error_order") else self.order(terms)
-
-    def init(self, terms, t0, t1, y0, args):
-        return self.solver.init(terms, t0, t1, y0, args)
+    def __getattr__(self, name):
+        # anything else diffrax reads from the solver (e.g. an implicit solver's root_finder,
+        # whose tolerances it sets from the step-size controller) is the wrapped solver's
+        if name.startswith("__") or name in ("solver", "project", "scan_kind"):
+            raise AttributeError(name)
+        return getattr(self.solver, name)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
-        y1, err, dense, state, result = self.solver.step(terms, t0, t1, y0, args, solver_state, made_jump)
-        return self.project(y1), err, dense, state, result
+        y1, err, dense, state, result = self.inner.step(terms, t0, t1, y0, args, solver_state, made_jump)
+        if self.project is not None:
+            y1 = self.project(y1)
+        finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves(y1)]))
+        result = diffrax.RESULTS.where(finite, result, diffrax.RESULTS.nonfinite)
+        return y1, err, dense, state, result
 
-    def func(self, terms, t0, y0, args):
-        return self.solver.func(terms, t0, y0, args)
+
+class _UnitQuaternions(eqx.Module):
+    """Renormalises the ball/free quaternions of ``y[0]`` (a module, so the model's arrays are
+    traced and equal scenes share one compilation)."""
+
+    model: Any
+
+    def __call__(self, y):
+        from .kinematics import normalize_qpos
+
+        return (normalize_qpos(self.model, y[0]),) + tuple(y[1:])
 
 
 #: Solver presets: name -> (factory, adaptive).
@@ -195,7 +227,8 @@ class Solution(eqx.Module):
             effects) ``(n_save,)``; ``None`` when the system has none.
         work: work done since ``t0`` by each non-conservative effect, ``{name: (n_save,)}``
             (``"actuation"``, ``"dampers"`` (negative: minus the dissipation), ``"loads"``,
-            ``"support"``); empty when there are none.
+            ``"support"``; for a :class:`jaxbody.Phases` run also ``"switches"``, the energy
+            change at the switches up to each time); empty when there are none.
         energy_drift: ``max_t |E(t) − E(t0) − Σ work(t)| / max(|E(t0)|, tiny)``: how far the energy
             balance is from closing (a check of the integration, meaningful with damping and
             actuation too); ``None`` without energy.
@@ -205,13 +238,26 @@ class Solution(eqx.Module):
             without constraints.
         reactions: constraint reactions ``Λ`` at the saved times ``(n_save, s)``, one column per
             constraint row (``layout`` lists their names under ``"constraint_names"``; forces in
-            newtons for the point constraints of :mod:`jaxbody.constraints`), or ``None``.
-        stats: ``num_steps``, ``num_accepted_steps``, ``num_rejected_steps``.
+            newtons for the point constraints of :mod:`jaxbody.constraints`), or ``None``. For a
+            :class:`jaxbody.Phases` run, ``s`` is the largest row count over the phases and a
+            phase with fewer rows is padded with NaN (``layout["phase_constraint_names"]`` names
+            each phase's columns); ``constraint_drift`` likewise.
+        stats: ``num_steps``, ``num_accepted_steps``, ``num_rejected_steps``; ``v0_correction``
+            ``(nv,)`` when ``project_initial=True`` projected ``v0`` onto the constraints; for a
+            :class:`jaxbody.Phases` run also ``phase`` ``(n_save,)`` and the switch reports
+            ``switch_time``, ``switch_occurred``, ``switch_energy_jump``, ``switch_energy_lost``
+            ``(n_switch,)`` (module docstring, "Phases"); ``num_repartitions``
+            (changes of the constraints' coordinate partition, see
+            :class:`jaxbody.maggi.PartitionSolver`; ``0`` without constraints).
         result: a :class:`RESULTS` code (``successful``; ``event_occurred`` when an event ended
             the solve; a failure code otherwise).
         t_final, q_final, v_final: where the solve stopped (``t1``, the event time, or the
-            last accepted step of a failed solve).
+            last step of a failed solve: with ``throw=False`` these are the failure's time and
+            state, the ones a ``throw=True`` error message quotes).
         layout: static description of ``q``/``v`` (names, joint kinds, addresses) for replay.
+        repartition_times: times at which the coordinate partition was re-chosen (the first
+            ``jaxbody.maggi.MAX_RECORDED_REPARTITIONS``, NaN in unused slots), or ``None``
+            without an automatically partitioned constraint set.
     """
 
     t: Float[Array, " n_save"]
@@ -222,13 +268,14 @@ class Solution(eqx.Module):
     energy_drift: Float[Array, ""] | None
     constraint_drift: Any
     reactions: Any
-    stats: dict[str, Int[Array, ""]]
+    stats: dict[str, Array]
     result: RESULTS
     t_final: Float[Array, ""]
     q_final: Float[Array, " nq"]
     v_final: Float[Array, " nv"]
     layout: tuple = eqx.field(static=True, default=())
     interpolation: Any = None
+    repartition_times: Any = None
 
     def evaluate(self, t: ArrayLike) -> tuple[Float[Array, " nq"], Float[Array, " nv"]]:
         """``(q, v)`` at any time ``t`` in ``[t0, t_final]`` from the solver's dense output
@@ -294,6 +341,8 @@ class Solution(eqx.Module):
                 arrays[f"constraint_drift/{k}"] = np.asarray(r)
         if self.reactions is not None:
             arrays["reactions"] = np.asarray(self.reactions)
+        if self.repartition_times is not None:
+            arrays["repartition_times"] = np.asarray(self.repartition_times)
         with open(path, "wb") as fh:
             np.savez(fh, **arrays)
 
@@ -336,8 +385,14 @@ def load_solution(path) -> Solution:
         t_final=jnp.asarray(d["t_final"]),
         q_final=jnp.asarray(d["q_final"]),
         v_final=jnp.asarray(d["v_final"]),
-        layout=tuple(sorted((k, tuple(v) if isinstance(v, list) else v) for k, v in layout.items())),
+        layout=tuple(sorted((k, _tuples(v)) for k, v in layout.items())),
+        repartition_times=jnp.asarray(d["repartition_times"]) if "repartition_times" in d else None,
     )
+
+
+def _tuples(x):
+    """JSON lists back to (hashable) tuples, nested ones too."""
+    return tuple(_tuples(y) for y in x) if isinstance(x, list) else x
 
 
 def _scale(energy):
@@ -489,13 +544,20 @@ def _as_scene(system, tau):
 
 
 # ----------------------------------------------------------------------------- vector field
-def _vector_field(t, y, args):
+def _vector_field(t, y, args, slots=None):
+    """``(q̇, v̇, ẇ)``: ``ẇ`` holds the power of the scene's non-conservative effects, placed in
+    the slots ``slots`` of the work vector (a phased run carries one work vector, the union of
+    every phase's effects, across its switches; an effect absent from a phase adds nothing)."""
     scene, valid = args
     q, v = y[0], y[1]
     a, powers, _ = scene.evaluate(t, q, v)
     out = (scene.qdot(q, v), a)
     if len(y) == 3:
-        out = out + (jnp.stack(powers).astype(v.dtype),)
+        if slots:
+            wdot = jnp.zeros_like(y[2]).at[np.asarray(slots, dtype=np.int32)].set(jnp.stack(powers).astype(v.dtype))
+        else:
+            wdot = jnp.zeros_like(y[2])
+        out = out + (wdot,)
     if valid is not None:
         # an input that failed the boundary check integrates a frozen state (no NaN reaches
         # the step-size controller of the other members of a batch)
@@ -510,13 +572,19 @@ def _make_event(event, dtype):
         if not callable(event):
             raise ValueError(f"simulate: event must be a jaxbody.Event or a callable g(t, q, v), got {type(event).__name__}")
         event = Event(event)
-
-    def cond_fn(t, y, args, **kwargs):
-        del args, kwargs
-        return event(t, y[0], y[1])
-
     tol = 100 * float(jnp.finfo(dtype).eps)
-    return diffrax.Event(cond_fn, root_finder=optx.Newton(rtol=tol, atol=tol), direction=event.direction)
+    return diffrax.Event(_EventCondition(event), root_finder=optx.Newton(rtol=tol, atol=tol), direction=event.direction)
+
+
+class _EventCondition(eqx.Module):
+    """diffrax's ``cond_fn(t, y, args)`` of a :class:`jaxbody.Event` (a module, not a closure made
+    per call, so that repeated solves with the same event reuse one compilation)."""
+
+    event: Event
+
+    def __call__(self, t, y, args, **kwargs):
+        del args, kwargs
+        return self.event(t, y[0], y[1])
 
 
 def _solver(solver, scene, dtype, rtol, atol, dt0, controller):
@@ -540,12 +608,8 @@ def _solver(solver, scene, dtype, rtol, atol, dt0, controller):
             if dt0 is None:
                 raise ValueError(f"fixed-step solver {solver!r} needs dt0")
             controller = diffrax.ConstantStepSize()
-    if scene.has_quaternions:
-        from .kinematics import normalize_qpos
-
-        model = scene.system
-        solver_obj = _Projected(solver_obj, lambda y: (normalize_qpos(model, y[0]),) + tuple(y[1:]))
-    return solver_obj, controller
+    project = _UnitQuaternions(scene.system) if scene.has_quaternions else None
+    return _Guarded(solver_obj, project), controller
 
 
 # ----------------------------------------------------------------------------- simulate
@@ -571,12 +635,15 @@ def simulate(
     throw: bool = True,
     progress: bool = False,
     track_work: bool = True,
+    project_initial: bool = False,
 ) -> Solution:
     """Integrate a scene from ``(q0, v0)`` at ``t0`` to ``t1`` (or to a terminating event).
 
     Args:
         system: a :class:`jaxbody.Scene`, a :class:`jaxbody.Model` (= ``jb.scene(model)``), a
-            :class:`jaxbody.Phases` or any :class:`DynamicalSystem`.
+            :class:`jaxbody.Phases` (one joined solution: trajectory, energy balance across the
+            switches, reactions and switch reports; see "Phases" in the module docstring) or
+            any :class:`DynamicalSystem`.
         q0: initial coordinates ``(nq,)``; v0: initial velocities ``(nv,)``.
         t1: final time (after ``t0``).
         t0: initial time.
@@ -602,6 +669,11 @@ def simulate(
         throw: raise on failure (see the module docstring) or return result codes.
         progress: show diffrax's ``TqdmProgressMeter`` (text meter without tqdm).
         track_work: integrate the work of the non-conservative effects (energy balance).
+        project_initial: when the scene has Maggi constraints (``jb.scene(..., constraints=)``
+            or a :class:`jaxbody.maggi.ConstrainedSystem`) and ``v0`` violates them, project
+            ``v0`` on the constraint manifold in the kinetic metric (the closest admissible
+            rates in kinetic energy) instead of raising; the correction ``v0_projected − v0``
+            is reported in ``Solution.stats["v0_correction"]``.
 
     Returns:
         :class:`Solution`.
@@ -610,15 +682,49 @@ def simulate(
         TypeError: ``system`` lacks the protocol's members.
         ValueError: unknown solver, missing ``dt0``, ``t1`` not after ``t0``, non-positive or
             non-finite ``rtol``/``atol``/``dt0``/``max_steps``, wrong shapes of ``q0``/``v0``/
-            ``tau`` (naming the argument), and NaN/inf inputs or negative masses (concrete inputs).
-        SimulationError: the solve failed and ``throw=True`` (concrete inputs).
+            ``tau`` (naming the argument), NaN/inf inputs or negative masses (concrete inputs),
+            and initial rates that violate the scene's constraints (naming the constraint rows;
+            under ``jit``/``vmap`` an ``eqx.error_if`` with the same message, or the result code
+            ``invalid_input`` with ``throw=False``).
+        SimulationError: the solve failed and ``throw=True``. With concrete inputs it is raised
+            as such; under ``jax.jit`` it is raised from a host callback, so it surfaces as JAX's
+            runtime error (``jax.errors.JaxRuntimeError``) whose message holds the same text:
+            the time reached, the reason, and ``q``/``v`` there (with the batch member under
+            ``vmap``).
     """
     if isinstance(system, Phases):
+        extra = [name for name, given in (("tau", tau is not None), ("event", event is not None), ("dense", dense)) if given]
+        if extra:
+            raise ValueError(
+                f"simulate: {', '.join(extra)} cannot be given with jaxbody.Phases (declare actuation in "
+                "the phases' scenes; their events end the phases; phases save at times)"
+            )
         return _simulate_phases(
             system, q0, v0, t1, t0=t0, solver=solver, rtol=rtol, atol=atol, dt0=dt0, controller=controller,
             saveat=saveat, n_save=n_save, max_steps=max_steps, adjoint=adjoint, throw=throw, progress=progress,
+            track_work=track_work, project_initial=project_initial,
         )
     scene = _as_scene(system, tau)
+    sol, _ = _simulate_scene(
+        scene, q0, v0, t1, t0=t0, solver=solver, rtol=rtol, atol=atol, dt0=dt0, controller=controller,
+        saveat=saveat, n_save=n_save, max_steps=max_steps, adjoint=adjoint, event=event, dense=dense,
+        throw=throw, progress=progress, track_work=track_work, project_initial=project_initial,
+    )
+    return sol
+
+
+def _simulate_scene(
+    scene, q0, v0, t1, *, t0, solver, rtol, atol, dt0, controller, saveat, n_save, max_steps, adjoint, event,
+    dense, throw, progress, track_work, project_initial, work_names=None, work0=None, check_constraints=True,
+    phase_start=False,
+):
+    """:func:`simulate` of one scene. Returns ``(solution, work at the end)``.
+
+    ``work_names``/``work0``: the work vector carried as state (default: the scene's own
+    non-conservative effects, from zero); a phased run passes the union over its phases and
+    the work reached at the switch. ``phase_start``: ``t0`` may equal ``t1`` (a phase that
+    starts at the end of the run because an earlier event never triggered).
+    """
     dtype = jnp.result_type(float)
     q0 = jnp.asarray(q0)
     q0 = q0.astype(q0.dtype if jnp.issubdtype(q0.dtype, jnp.inexact) else dtype)
@@ -631,7 +737,7 @@ def simulate(
         _positive(name, val)
     if max_steps is not None:
         _positive("max_steps", max_steps, integer=True)
-    if _is_concrete(t0, t1) and not float(np.asarray(t1)) > float(np.asarray(t0)):
+    if not phase_start and _is_concrete(t0, t1) and not float(np.asarray(t1)) > float(np.asarray(t0)):
         raise ValueError(f"simulate: t1 ({float(np.asarray(t1))}) must be after t0 ({float(np.asarray(t0))})")
     if saveat is not None and n_save is not None:
         raise ValueError("give saveat or n_save, not both")
@@ -652,12 +758,27 @@ def simulate(
     if saveat.dense or saveat.subs is not None and not isinstance(saveat.subs, diffrax.SubSaveAt):
         raise ValueError("simulate: pass dense=True instead of SaveAt(dense=True); nested subs are not supported")
     adjoint = _adjoint(adjoint)
+    solver_obj = for_adjoint(partition_solver(solver_obj, scene, adjoint), adjoint, max_steps)
 
-    if _is_concrete(scene, q0, v0):
+    constrained = _scene_constraints(scene) if check_constraints else None
+    if constrained is not None and constrained.n_constraint == 0:
+        constrained = None
+    correction = None
+    if _is_concrete(scene, q0, v0, t0):
         _concrete_value_checks(scene, q0, v0)
+        if constrained is not None:
+            v0, correction = _concrete_constraint_check(constrained, t0, q0, v0, project_initial)
         valid = None
     else:
         checks = _value_checks(scene, q0, v0)
+        if constrained is not None:
+            bad, msg = _traced_constraint_check(constrained, t0, q0, v0)
+            if project_initial:
+                projected = jnp.where(bad, maggi.project_velocities(constrained, q0, v0, t0), v0)
+                correction = projected - v0
+                v0 = projected
+            else:
+                checks.append((bad, msg))
         if throw:
             for bad, msg in checks:
                 q0 = eqx.error_if(q0, bad, msg)
@@ -667,16 +788,85 @@ def simulate(
             # a member that failed the check integrates a safe state: frozen (see _vector_field)
             q0 = jnp.where(valid, q0, jnp.nan_to_num(q0, nan=0.0, posinf=0.0, neginf=0.0))
             v0 = jnp.where(valid, v0, jnp.nan_to_num(v0, nan=0.0, posinf=0.0, neginf=0.0))
-    n_work = len(scene.work_names) if (track_work and scene.has_energy) else 0
-    y0 = (q0, v0) if n_work == 0 else (q0, v0, jnp.zeros((n_work,), q0.dtype))
+    own = scene.work_names if (track_work and scene.has_energy) else ()
+    if work_names is None:
+        work_names = own
+    missing = [n for n in own if n not in work_names]
+    if missing:
+        raise ValueError(f"simulate: internal: work slots {work_names} lack {missing}")
+    slots = tuple(work_names.index(n) for n in own)
+    if track_work and scene.has_energy and work_names:
+        w0 = jnp.zeros((len(work_names),), q0.dtype) if work0 is None else jnp.asarray(work0, q0.dtype)
+        y0 = (q0, v0, w0)
+    else:
+        y0 = (q0, v0)
     meter = _progress_meter(progress)
-    sol = _solve(scene, y0, t0, t1, valid, solver_obj, controller, dt0, saveat, max_steps, adjoint, meter,
-                 _make_event(event, q0.dtype), _layout(scene), dense)
+    sol, w_final = _solve(scene, y0, t0, t1, valid, solver_obj, controller, dt0, saveat, max_steps, adjoint, meter,
+                          _make_event(event, q0.dtype), _layout(scene), dense, slots, tuple(work_names))
+    if correction is not None:
+        sol = dataclasses.replace(sol, stats={**sol.stats, "v0_correction": correction})
     if valid is not None:
         sol = eqx.tree_at(lambda s: s.result, sol, RESULTS.where(valid, sol.result, RESULTS.invalid_input))
     if throw:
         sol = _raise_on_failure(sol)
-    return sol
+    return sol, w_final
+
+
+# ----------------------------------------------------------------------------- constraints at t0
+def _scene_constraints(scene) -> "maggi.ConstrainedSystem | None":
+    """The scene's Maggi constraints as a :class:`jaxbody.maggi.ConstrainedSystem` on the
+    scene's own model (so its parameters, not the copy the constraints were built with, give
+    the kinetic metric), or ``None`` (no constraints, or a constraint object of another kind:
+    those are neither checked at ``t0`` nor projected at switches)."""
+    from .model import Model
+
+    cs = scene.constraints
+    if not isinstance(cs, maggi.ConstrainedSystem):
+        return None
+    if isinstance(cs.base, maggi.ModelBase) and isinstance(scene.system, Model) and cs.base.model is not scene.system:
+        cs = eqx.tree_at(lambda c: c.base.model, cs, scene.system)
+    return cs
+
+
+def _with_constraints(scene, cs):
+    """``scene`` with its constraint system replaced by ``cs`` (e.g. re-partitioned)."""
+    if scene.path == "system" and scene.system is scene.constraints:
+        return dataclasses.replace(scene, system=cs, constraints=cs)
+    return dataclasses.replace(scene, constraints=cs)
+
+
+_V0_ATOL = 1e-9  # admissible residual of v0, scaled by max(1, max|v0|) (as jaxbody.maggi.initial_state)
+
+
+def _concrete_constraint_check(cs, t0, q0, v0, project_initial):
+    # the admissible case (the usual one) is decided by one compiled residual; otherwise
+    # jaxbody.maggi.initial_state names the rows at fault or projects
+    f = np.asarray(_residual(cs, t0, q0, v0))
+    scale = max(1.0, float(np.max(np.abs(np.asarray(v0)))))
+    if np.all(np.abs(f) <= _V0_ATOL * scale):
+        return v0, (jnp.zeros_like(v0) if project_initial else None)
+    try:
+        _, v0p, correction = maggi.initial_state(cs, q0, v0, t0, project_initial=project_initial, atol=_V0_ATOL)
+    except ValueError as err:
+        raise ValueError(f"simulate: v0: {err}") from None
+    return v0p.astype(v0.dtype), (correction.astype(v0.dtype) if project_initial else None)
+
+
+@eqx.filter_jit
+def _residual(cs, t, q, v):
+    return cs.constraint_residual(t, q, v)
+
+
+def _traced_constraint_check(cs, t0, q0, v0):
+    """``(bad, message)``: the check of :func:`jaxbody.maggi.initial_state` on traced values."""
+    f = cs.constraint_residual(t0, q0, v0)
+    scale = jnp.maximum(1.0, jnp.max(jnp.abs(v0)))
+    bad = jnp.any(jnp.abs(f) > _V0_ATOL * scale)
+    msg = (
+        f"simulate: v0: initial velocities violate the constraints {list(cs.constraint_names)} (a residual "
+        f"exceeds {_V0_ATOL:g}·max(1, max|v0|)); give admissible rates or pass project_initial=True"
+    )
+    return bad, msg
 
 
 def _adjoint(adjoint):
@@ -701,42 +891,92 @@ def _progress_meter(progress):
     return diffrax.TqdmProgressMeter()
 
 
+# ----------------------------------------------------------------------------- failures
 def _raise_on_failure(sol: Solution) -> Solution:
-    if _is_concrete(sol.result._value, sol.t_final):
-        if not bool(np.all(np.asarray(sol.success))):
+    """``throw=True``: a failed solve raises a :class:`SimulationError` naming the time reached,
+    the reason and the state there. Eagerly it is raised here; under ``jit``/``vmap``/``grad``
+    the check is a ``lax.cond`` on "any member failed" whose failing branch calls back to the
+    host with ``(t_final, q_final, v_final)`` and raises there (JAX re-raises it as its runtime
+    error with the same text). The callback sits in a custom JVP, so derivatives pass through."""
+    failed = ~sol.success
+    if _is_concrete(sol.result._value, sol.t_final, sol.q_final, sol.v_final):
+        if bool(np.any(np.asarray(failed))):
             raise SimulationError(
-                f"simulate: the solve failed at t = {float(np.asarray(sol.t_final).ravel()[0]):.6g}: {_reason(sol)}\n"
-                f"  state at the failure: q = {np.asarray(sol.q_final).tolist()}, v = {np.asarray(sol.v_final).tolist()}\n"
-                f"  pass throw=False to get the trajectory up to the failure and the result code"
+                _failure_message(np.asarray(failed), np.asarray(sol.result._value), np.asarray(sol.t_final),
+                                 np.asarray(sol.q_final), np.asarray(sol.v_final))
             )
         return sol
-    okay = sol.success
-    return eqx.tree_at(lambda s: s.q, sol, sol.result.error_if(sol.q, ~okay))
+    dynamic, static = eqx.partition(sol, eqx.is_array)
+    dynamic = _fail_with_state(dynamic, failed, sol.result._value, sol.t_final, sol.q_final, sol.v_final)
+    return eqx.combine(dynamic, static)
 
 
-def _reason(sol):
-    for name in ("max_steps_reached", "dt_min_reached", "max_steps_rejected", "invalid_input", "internal_error"):
-        member = getattr(RESULTS, name)
-        if bool(np.all(np.asarray(sol.result == member))):
-            return RESULTS[member]
-    return "the step-size controller or the solver's root finder failed"
+@eqx.filter_custom_jvp
+def _fail_with_state(dynamic, failed, code, t, q, v):
+    leaves, treedef = jax.tree.flatten(dynamic)
+    shapes = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves]
+
+    def report(failed, code, t, q, v, *rest):
+        raise SimulationError(_failure_message(failed, code, t, q, v))
+
+    def fail():
+        return jax.pure_callback(report, shapes, failed, code, t, q, v, *leaves, vmap_method="broadcast_all")
+
+    # one predicate for a whole vmapped batch: the failing branch runs (and raises) only when
+    # some member failed, and reports the first one that did
+    out = lax.cond(eqx.internal.unvmap_any(failed), fail, lambda: leaves)
+    return jax.tree.unflatten(treedef, out)
+
+
+@_fail_with_state.def_jvp
+def _fail_with_state_jvp(primals, tangents):
+    return _fail_with_state(*primals), tangents[0]
+
+
+def _failure_message(failed, code, t, q, v) -> str:
+    failed = np.asarray(failed)
+    batch = failed.shape
+    flat = failed.reshape(-1)
+    i = int(np.flatnonzero(flat)[0]) if flat.any() else 0
+    code = int(np.broadcast_to(np.asarray(code), batch).reshape(-1)[i])
+    t = float(np.broadcast_to(np.asarray(t), batch).reshape(-1)[i])
+    q = np.asarray(q).reshape((-1,) + np.shape(q)[len(batch):])[i]
+    v = np.asarray(v).reshape((-1,) + np.shape(v)[len(batch):])[i]
+    where = f" (batch member {np.unravel_index(i, batch) if len(batch) > 1 else i} of {flat.size})" if batch else ""
+    return (
+        f"simulate: the solve failed at t = {t:.6g}{where}: {_reason(code)}\n"
+        f"  state at the failure: q = {q.tolist()}, v = {v.tolist()}\n"
+        f"  pass throw=False to get the trajectory up to the failure and the result code"
+    )
+
+
+def _reason(code: int) -> str:
+    if code == int(np.asarray(RESULTS.nonfinite._value)):
+        return ("the state became NaN or inf (the motion blew up, e.g. a fixed step too large for stiff "
+                "dynamics, or a force returned NaN); the state shown is the first non-finite one, the "
+                "trajectory saved before it is finite")
+    if code == int(np.asarray(RESULTS.successful._value)):
+        return "the step-size controller or the solver's root finder failed"
+    return RESULTS._index_to_message[code]
 
 
 @eqx.filter_jit
-def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps, adjoint, meter, event, layout, dense):
+def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps, adjoint, meter, event, layout, dense,
+           slots, work_names):
     main = saveat.subs if saveat.subs is not None else diffrax.SubSaveAt(ts=saveat.ts, t0=saveat.t0, t1=saveat.t1, steps=saveat.steps)
     # the end state is saved separately, except with backsolve (which takes no SaveAt(subs=...)):
     # there the last saved point stands for it
     single = isinstance(adjoint, diffrax.BacksolveAdjoint)
     sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(_vector_field),
+        diffrax.ODETerm(functools.partial(_vector_field, slots=slots)),
         solver,
         t0,
         t1,
         dt0,
         y0,
         args=(scene, valid),
-        saveat=diffrax.SaveAt(subs=main, dense=dense) if single else diffrax.SaveAt(subs=[main, diffrax.SubSaveAt(t1=True)], dense=dense),
+        saveat=diffrax.SaveAt(subs=main, dense=dense) if single else diffrax.SaveAt(
+            subs=[main, diffrax.SubSaveAt(t1=True)], dense=dense, solver_state=isinstance(solver, PartitionSolver)),
         stepsize_controller=controller,
         max_steps=max_steps,
         adjoint=adjoint,
@@ -755,7 +995,7 @@ def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps,
         vs = jnp.where(finite[:, None], v, 0.0)
         energy = jnp.where(finite, jax.vmap(scene.total_energy)(qs, vs), jnp.nan)
         if len(ys) == 3:
-            work = {name: ys[2][:, i] for i, name in enumerate(scene.work_names)}
+            work = {name: ys[2][:, i] for i, name in enumerate(work_names)}
         bal = _balance(energy, work) / _scale(energy)
         drift = jnp.max(jnp.where(finite, jnp.abs(bal), 0.0))
     else:
@@ -773,19 +1013,59 @@ def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps,
             "position": jnp.where(finite[:, None], pos, jnp.nan),
             "velocity": jnp.where(finite[:, None], vel, jnp.nan),
         }
-        reactions = jnp.where(finite[:, None], jax.vmap(lambda tt, a, b: scene.evaluate(tt, a, b)[2])(t_safe, qs, vs), jnp.nan)
+        # Λ does not depend on the coordinate partition: each state with its best-conditioned one
+        lam = jax.vmap(lambda tt, a, b: with_best_partition(scene, tt, a, b).evaluate(tt, a, b)[2])(t_safe, qs, vs)
+        reactions = jnp.where(finite[:, None], lam, jnp.nan)
     stats = {k: jnp.asarray(sol.stats[k]) for k in ("num_steps", "num_accepted_steps", "num_rejected_steps")}
     result = RESULTS.promote(sol.result)
-    return Solution(
+    stats["num_repartitions"], repartition_times, result = _partition_outcome(solver, sol, result)
+    out = Solution(
         t=ts, q=q, v=v, energy=energy, work=work, energy_drift=drift, constraint_drift=cdrift,
         reactions=reactions, stats=stats, result=result, t_final=tf[-1], q_final=yf[0][-1], v_final=yf[1][-1], layout=layout,
-        interpolation=sol.interpolation if dense else None,
+        interpolation=sol.interpolation if dense else None, repartition_times=repartition_times,
     )
+    return out, (yf[2][-1] if len(yf) == 3 else None)
+
+
+def _partition_outcome(solver, sol, result):
+    """``(num_repartitions, repartition_times, result)`` of a solve: what the
+    :class:`jaxbody.maggi.PartitionSolver` did (zero and ``None`` for other solvers); a solve
+    it stopped on a degraded partition gets ``RESULTS.partition_degraded``."""
+    report = partition_report(solver, sol.solver_state)
+    if report is None:
+        return jnp.zeros((), jnp.int32), None, result
+    result = RESULTS.where(report["degraded"], RESULTS.partition_degraded, result)
+    return report["num_repartitions"], report["repartition_times"], result
 
 
 # ----------------------------------------------------------------------------- phases
-def _simulate_phases(phases: Phases, q0, v0, t1, *, t0, saveat, n_save, **kw):
-    """Run phase after phase; phase ``i`` ends at the first root of ``events[i]``."""
+def _simulate_phases(phases: Phases, q0, v0, t1, *, t0, saveat, n_save, track_work, project_initial, throw, **kw):
+    """Run phase after phase and join them into one :class:`Solution`.
+
+    Phase ``i`` runs from the end of phase ``i − 1`` until the first root of ``events[i]``
+    (the last one to ``t1``). At a switch, ``transitions[i]`` maps the state when given; then,
+    when the next scene has Maggi constraints, its velocities are projected onto them as an
+    impulsive constraint (:func:`jaxbody.maggi.switch_constraints`: ``x⁺ = A(AᵀDA)⁻¹AᵀD·x⁻``,
+    a looser set keeps the velocity). The joined solution carries:
+
+    * ``q``, ``v``, ``energy`` (each saved time from its own phase's scene; the saved time at a
+      switch belongs to the phase that ends there);
+    * ``work``: the work of every non-conservative effect of any phase, integrated as one state
+      vector carried across the switches (an effect absent from a phase adds nothing there),
+      plus ``work["switches"]``: the energy change at the switches up to each time, so that
+      ``energy_balance = E(t) − E(t0) − Σ work(t)`` closes across the whole run and
+      ``energy_drift`` measures only integration error;
+    * ``stats``: step counts summed over phases, ``"phase"`` (the phase index of each saved
+      time) and per switch ``"switch_time"`` (NaN when its event never triggered),
+      ``"switch_occurred"``, ``"switch_energy_jump"`` ``E⁺ − E⁻`` (an impulsive constraint
+      loses energy; a phase with other conservative effects measures energy differently) and
+      ``"switch_energy_lost"`` ``½(x⁻ − x⁺)ᵀD(x⁻ − x⁺) ≥ 0`` of the velocity projection (zero
+      when there is none);
+    * ``reactions`` and ``constraint_drift`` of every phase with constraints, padded with NaN
+      to the largest row count over the phases (``(n_save, s_max)``; a phase with ``s`` rows
+      fills columns ``0..s − 1``); ``dict(layout)["phase_constraint_names"]`` names each
+      phase's rows, and ``"constraint_names"`` is kept when every phase has the same rows.
+    """
     dtype = jnp.result_type(float)
     t0 = jnp.asarray(t0, dtype)
     t1 = jnp.asarray(t1, dtype)
@@ -795,42 +1075,132 @@ def _simulate_phases(phases: Phases, q0, v0, t1, *, t0, saveat, n_save, **kw):
         raise ValueError("simulate: phases save at times; pass saveat as an array or n_save")
     else:
         ts = jnp.asarray(saveat, dtype)
+    scenes = list(phases.scenes)
+    energetic = track_work and all(sc.has_energy for sc in scenes)
+    work_names: tuple[str, ...] = ()
+    if energetic:
+        for sc in scenes:
+            work_names += tuple(n for n in sc.work_names if n not in work_names)
     q, v, start = jnp.asarray(q0, dtype), jnp.asarray(v0, dtype), t0
-    parts, ends, results, steps = [], [], [], []
-    for i, sc in enumerate(phases.scenes):
-        last = i == len(phases.scenes) - 1
-        ev = None if last else phases.events[i]
-        sol = simulate(sc, q, v, t1, t0=start, saveat=jnp.clip(ts, start, t1), event=ev, track_work=False, **kw)
+    w = jnp.zeros((len(work_names),), dtype) if work_names else None
+    parts, ends, switches = [], [], []
+    for i, sc in enumerate(scenes):
+        last = i == len(scenes) - 1
+        sol, w = _simulate_scene(
+            sc, q, v, t1, t0=start, saveat=jnp.clip(ts, start, t1), n_save=None,
+            event=None if last else phases.events[i], dense=False, throw=throw, track_work=energetic,
+            project_initial=project_initial, work_names=work_names, work0=w, check_constraints=i == 0,
+            phase_start=i > 0, **kw,
+        )
         parts.append(sol)
-        end = t1 if last else jnp.where(sol.event_occurred, sol.t_final, t1)
-        ends.append(end)
-        results.append(sol.result)
-        steps.append(sol.stats)
-        q, v = sol.q_final, sol.v_final
-        if not last and phases.transitions:
-            q, v = phases.transitions[i](sol.t_final, q, v)
-        start = sol.t_final
-    # stitch: the saved time t belongs to the first phase whose end is after t
-    out_q, out_v, out_e = parts[-1].q, parts[-1].v, parts[-1].energy
-    for sol, end in zip(reversed(parts[:-1]), reversed(ends[:-1])):
-        mine = ts <= end
-        out_q = jnp.where(mine[:, None], sol.q, out_q)
-        out_v = jnp.where(mine[:, None], sol.v, out_v)
-        if out_e is not None and sol.energy is not None:
-            out_e = jnp.where(mine, sol.energy, out_e)
-        else:
-            out_e = None
-    result = results[0]
-    for r in results[1:]:
+        if last:
+            ends.append(t1)
+            break
+        hit = sol.event_occurred
+        ends.append(jnp.where(hit, sol.t_final, t1))
+        t_sw, q_minus, v_minus = sol.t_final, sol.q_final, sol.v_final
+        q, v = q_minus, v_minus
+        if phases.transitions:
+            q, v = phases.transitions[i](t_sw, q, v)
+        scenes[i + 1], v, lost = _switch_into(scenes[i + 1], t_sw, q, v)
+        jump = _energy_jump(sc, scenes[i + 1], hit, q_minus, v_minus, q, v) if energetic else None
+        switches.append((hit, jnp.where(hit, t_sw, jnp.nan), jump, jnp.where(hit, lost, 0.0)))
+        start = t_sw
+    return _join_phases(ts, parts, ends, switches, work_names, energetic)
+
+
+@eqx.filter_jit
+def _energy_jump(before, after, hit, q_minus, v_minus, q_plus, v_plus):
+    """``E⁺ − E⁻`` at a switch (zero when its event did not trigger)."""
+    return jnp.where(hit, after.total_energy(q_plus, v_plus) - before.total_energy(q_minus, v_minus), 0.0)
+
+
+@eqx.filter_jit
+def _join_phases(ts, parts, ends, switches, work_names, energetic):
+    """One :class:`Solution` from the phases' solutions (see :func:`_simulate_phases`)."""
+    dtype = ts.dtype
+    # the saved time t belongs to the first phase whose end is at or after t
+    phase = sum(((ts > end).astype(jnp.int32) for end in ends[:-1]), jnp.zeros(ts.shape, jnp.int32))
+
+    def join(arrays):
+        out = arrays[-1]
+        for k in range(len(arrays) - 2, -1, -1):
+            mine = (phase == k).reshape(phase.shape + (1,) * (out.ndim - 1))
+            out = jnp.where(mine, arrays[k], out)
+        return out
+
+    q_out = join([p.q for p in parts])
+    v_out = join([p.v for p in parts])
+    energy = work = drift = None
+    if energetic:
+        energy = join([p.energy for p in parts])
+        work = {name: join([p.work[name] for p in parts]) for name in work_names}
+        if switches:
+            work["switches"] = sum((jnp.where(ts > end, jump, 0.0) for end, (_, _, jump, _) in zip(ends, switches)),
+                                   jnp.zeros(ts.shape, dtype))
+        finite = jnp.isfinite(energy)
+        drift = jnp.max(jnp.where(finite, jnp.abs(_balance(energy, work) / _scale(energy)), 0.0))
+    reactions = cdrift = None
+    rows = [None if p.reactions is None else p.reactions.shape[-1] for p in parts]
+    if any(r is not None for r in rows):
+        s_max = max(r for r in rows if r is not None)
+
+        def padded(x):
+            if x is None:
+                return jnp.full(ts.shape + (s_max,), jnp.nan, dtype)
+            return jnp.concatenate([x, jnp.full(x.shape[:-1] + (s_max - x.shape[-1],), jnp.nan, x.dtype)], axis=-1)
+
+        reactions = join([padded(p.reactions) for p in parts])
+        cdrift = {
+            key: join([padded(None if p.constraint_drift is None else p.constraint_drift[key]) for p in parts])
+            for key in ("position", "velocity")
+        }
+    result = parts[0].result
+    for p in parts[1:]:
         ok = (result == RESULTS.successful) | (result == RESULTS.event_occurred)
-        result = RESULTS.where(ok, r, result)
-    stats = {k: sum(s[k] for s in steps) for k in steps[0]}
-    last = parts[-1]
+        result = RESULTS.where(ok, p.result, result)
+    stats = {k: sum(p.stats[k] for p in parts) for k in ("num_steps", "num_accepted_steps", "num_rejected_steps")}
+    stats["phase"] = phase
+    if "v0_correction" in parts[0].stats:
+        stats["v0_correction"] = parts[0].stats["v0_correction"]
+    if switches:
+        stats["switch_occurred"] = jnp.stack([s[0] for s in switches])
+        stats["switch_time"] = jnp.stack([s[1] for s in switches])
+        if energetic:
+            stats["switch_energy_jump"] = jnp.stack([s[2] for s in switches])
+        stats["switch_energy_lost"] = jnp.stack([s[3] for s in switches]).astype(dtype)
+    final = parts[-1]
     return Solution(
-        t=ts, q=out_q, v=out_v, energy=out_e, work={}, energy_drift=None, constraint_drift=None, reactions=None,
-        stats=stats, result=result, t_final=last.t_final, q_final=last.q_final, v_final=last.v_final,
-        layout=last.layout,
+        t=ts, q=q_out, v=v_out, energy=energy, work=work or {}, energy_drift=drift, constraint_drift=cdrift,
+        reactions=reactions, stats=stats, result=result, t_final=final.t_final, q_final=final.q_final,
+        v_final=final.v_final, layout=_phases_layout(parts),
     )
+
+
+def _switch_into(scene, t, q, v):
+    """Velocities entering ``scene`` at a switch: projected onto its Maggi constraints in the
+    kinetic metric (impulsive constraint). Returns ``(scene, v⁺, energy lost)``; ``scene`` is
+    re-partitioned at the switch state when it chooses its independent quasi-velocities
+    automatically and the state is concrete (as :func:`jaxbody.maggi.simulate_phases`)."""
+    cs = _scene_constraints(scene)
+    if cs is None or cs.n_constraint == 0:
+        return scene, v, jnp.zeros((), v.dtype)
+    if cs.epsilon is None and _is_concrete(cs, t, q, v):
+        cs = cs.repartition(q, v, t)
+        scene = _with_constraints(scene, cs)
+    report = maggi.switch_constraints(cs, t, q, v)
+    return scene, report.x_after.astype(v.dtype), report.energy_lost
+
+
+def _phases_layout(parts) -> tuple:
+    lay = dict(parts[-1].layout)
+    names = [dict(p.layout).get("constraint_names", ()) for p in parts]
+    lay.pop("constraint_names", None)
+    if any(names):
+        lay["phase_constraint_names"] = tuple(tuple(n) for n in names)
+        if all(n == names[0] for n in names):
+            lay["constraint_names"] = tuple(names[0])
+    return tuple(sorted(lay.items()))
 
 
 # ----------------------------------------------------------------------------- batches

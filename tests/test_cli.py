@@ -63,8 +63,9 @@ def read_csv(path):
 
 
 # ------------------------------------------------------------------ end to end
-def double_pendulum_reference(q0, v0, ts):
-    """Example 1 in absolute angles from the downward vertical (eq. 14), scipy DOP853."""
+def double_pendulum_reference(q0, v0, ts, Q=(0.0, 0.0)):
+    """Example 1 in absolute angles from the downward vertical (eq. 14), scipy DOP853, with
+    constant generalized forces ``Q`` conjugate to the absolute angles."""
     m1, m2, a1, a2, L1, I1, I2, g = 1.0, 0.6, 0.4, 0.3, 0.8, 0.05, 0.02, 9.81
     md1, md2 = m1 * a1 + m2 * L1, m2 * a2
     J1, J2 = I1 + m1 * a1**2 + m2 * L1**2, I2 + m2 * a2**2
@@ -75,7 +76,7 @@ def double_pendulum_reference(q0, v0, ts):
         M = np.array([[J1, L1 * md2 * c], [L1 * md2 * c, J2]])
         h = np.array([L1 * md2 * s * w2**2 + md1 * g * np.sin(x1),
                       -L1 * md2 * s * w1**2 + md2 * g * np.sin(x2)])
-        return [w1, w2, *np.linalg.solve(M, -h)]
+        return [w1, w2, *np.linalg.solve(M, np.asarray(Q) - h)]
 
     sol = solve_ivp(rhs, (ts[0], ts[-1]), [*q0, *v0], method="DOP853", rtol=1e-12, atol=1e-12,
                     t_eval=ts)
@@ -143,6 +144,78 @@ def test_simulate_mjcf_keyframe_matches_mujoco_rk4(tmp_path):
             mujoco.mj_step(m, d)
         np.testing.assert_allclose(rows[i, 1:3], d.qpos, rtol=0, atol=1e-9)
         np.testing.assert_allclose(rows[i, 3:5], d.qvel, rtol=0, atol=1e-8)
+
+
+def test_simulate_example_with_constant_torques_matches_solve_ivp(tmp_path):
+    """--torque on a built-in example: the planar chain's drives are the hinge moments M_k
+    (M_k on link k, −M_k on its parent), so the forces conjugate to the absolute angles are
+    Q = (M_1 − M_2, M_2); the energy balance closes with the work of the actuation."""
+    r = run_cli("simulate", "double_pendulum", "--t1", "0.5", "--saves", "6", "--chunks", "2",
+                "--rtol", "1e-11", "--atol", "1e-11", "--torque", "alpha1=0.5", "--torque", "alpha2=-0.2",
+                "--csv", tmp_path / "t.csv", "--no-progress", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert "effects         gravity, actuation" in r.stdout
+    balance = float(re.search(r"energy balance  max\|E-E0-W\|/\|E0\| = (\S+)", r.stdout).group(1))
+    assert balance < 1e-9
+    _, rows = read_csv(tmp_path / "t.csv")
+    q_ref, v_ref = double_pendulum_reference((1.0, -0.5), (0.0, 0.0), rows[:, 0], Q=(0.5 - (-0.2), -0.2))
+    np.testing.assert_allclose(rows[:, 1:3], q_ref, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(rows[:, 3:5], v_ref, rtol=0, atol=1e-8)
+    # the torques change the motion: without them the reference differs
+    q_free, _ = double_pendulum_reference((1.0, -0.5), (0.0, 0.0), rows[:, 0])
+    assert np.max(np.abs(q_free - q_ref)) > 1e-2
+
+
+def test_simulate_mjcf_scene_options_match_mujoco_rk4(tmp_path):
+    """--gravity, --damping, --torque and --load on an MJCF model vs MuJoCo's RK4 with the same
+    opt.gravity, dof_damping, qfrc_applied and xfrc_applied (applied at the body's centre of mass)."""
+    xml = tmp_path / "pendulum.xml"
+    xml.write_text(PENDULUM_XML)
+    r = run_cli("simulate", xml, "--keyframe", "swing", "--t1", "0.2", "--saves", "5", "--chunks", "1",
+                "--rtol", "1e-12", "--atol", "1e-12", "--csv", tmp_path / "p.csv", "--no-progress",
+                "--gravity", "0.5,0,-3", "--damping", "0.2", "--torque", "elbow=0.3",
+                "--load", "lower=0.5,0.2,0,0,0.1,0.05", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert "effects         gravity, dampers, actuation, loads" in r.stdout
+    _, rows = read_csv(tmp_path / "p.csv")
+
+    m = mujoco.MjModel.from_xml_string(PENDULUM_XML)
+    m.opt.integrator = mujoco.mjtIntegrator.mjINT_RK4
+    m.opt.timestep = 1e-4
+    m.opt.gravity[:] = (0.5, 0.0, -3.0)
+    m.dof_damping[:] = 0.2
+    d = mujoco.MjData(m)
+    mujoco.mj_resetDataKeyframe(m, d, 0)
+    d.qfrc_applied[:] = (0.0, 0.3)
+    d.xfrc_applied[m.body("lower").id] = (0.5, 0.2, 0.0, 0.0, 0.1, 0.05)
+    for i in range(1, 5):
+        while d.time < rows[i, 0] - 1e-9:
+            mujoco.mj_step(m, d)
+        np.testing.assert_allclose(rows[i, 1:3], d.qpos, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(rows[i, 3:5], d.qvel, rtol=0, atol=1e-8)
+
+
+def test_info_reflects_scene_options(tmp_path, capsys):
+    xml = tmp_path / "pendulum.xml"
+    xml.write_text(PENDULUM_XML)
+    assert main(["info", str(xml)]) == 0
+    out = capsys.readouterr().out
+    assert "gravity          on, (0, 0, -9.81) m/s²" in out
+    assert "joint dampers    1 DoFs (v[0])" in out
+    assert "actuation        none" in out and "external loads   none" in out
+    assert main(["info", str(xml), "--no-gravity", "--no-dampers", "--torque", "shoulder=0.3",
+                 "--load", "lower=0,0,-2"]) == 0
+    out = capsys.readouterr().out
+    assert "gravity          off" in out
+    assert "joint dampers    0 DoFs" in out
+    assert "actuation        constant generalized forces: shoulder = 0.3" in out
+    assert "external load    lower: force (0, 0, -2) N, moment (0, 0, 0) N·m at the centre of mass" in out
+    assert main(["info", str(xml), "--damping", "0.7", "--gravity", "0,0,-1.62"]) == 0
+    out = capsys.readouterr().out
+    assert "gravity          on, (0, 0, -1.62) m/s²" in out and "joint dampers    2 DoFs (v[0, 1])" in out
+    assert main(["info", "double_pendulum", "--no-gravity", "--torque", "alpha2=1.5"]) == 0
+    out = capsys.readouterr().out
+    assert "gravity          off" in out and "actuation        constant drives: alpha2 = 1.5" in out
 
 
 @pytest.mark.parametrize("n_save, n_chunks", [(201, 10), (6, 3), (31, 7), (3, 10), (2, 1)])
@@ -279,6 +352,40 @@ def test_bad_input_is_one_line_and_status_2(tmp_path, args, message):
     assert lines[0].startswith(f"jaxbody {args[0]}: error: ") and message in lines[0], lines[0]
     assert r.stdout == ""
     assert list(tmp_path.iterdir()) == [tmp_path / "bad.xml"]  # nothing written
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["simulate", "panda", "--torque", "joint9=1"], "--torque: unknown joint 'joint9'; joints: joint1, joint2"),
+        (["info", "panda", "--torque", "joint1=1,2"], "--torque joint1: expected 1 values, got 2"),
+        (["simulate", "panda", "--torque", "joint1=1", "--torque", "joint1=2"], "--torque: joint 'joint1' given twice"),
+        (["simulate", "panda", "--torque", "joint1"], "argument --torque: expected NAME=VALUE[,VALUE...], got 'joint1'"),
+        (["simulate", "panda", "--torque", "joint1=x"], "argument --torque: expected numbers separated by commas"),
+        (["simulate", "panda", "--load", "hand=1,2,3"], "--load: unknown body 'hand'; bodies: link0, link1"),
+        (["simulate", "panda", "--load", "link7=1,2"], "--load link7: expected 3 or 6 values, got 2"),
+        (["simulate", "panda", "--gravity", "0,-9.81"], "--gravity: expected 3 values GX,GY,GZ, got 2"),
+        (["simulate", "panda", "--damping", "-1"], "argument --damping: must be non-negative and finite, got -1"),
+        (["simulate", "panda", "--no-gravity", "--gravity", "0,0,1"], "argument --gravity: not allowed with argument --no-gravity"),
+        (["simulate", "double_pendulum", "--damping", "1"], "--damping needs a spatial model"),
+        (["simulate", "double_pendulum", "--torque", "phi=1"], "--torque: unknown coordinate 'phi'; coordinates: alpha1, alpha2"),
+        (["info", "cart_pendulum", "--no-gravity"], "gravity cannot be switched off on CartPendulum"),
+    ],
+    ids=lambda x: "-".join(x) if isinstance(x, list) else None,
+)
+def test_bad_scene_options_are_one_line_and_status_2(tmp_path, monkeypatch, capsys, args, message):
+    """In process (the subprocess path of usage errors is tested above): nothing written."""
+    monkeypatch.chdir(tmp_path)
+    try:
+        status = main(args)
+    except SystemExit as exc:  # argparse's own errors
+        status = exc.code
+    out, err = capsys.readouterr()
+    assert status == 2, (out, err)
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith(f"jaxbody {args[0]}: error: ") and message in lines[0], lines[0]
+    assert out == "" and list(tmp_path.iterdir()) == []
 
 
 def test_no_command_prints_help(capsys):

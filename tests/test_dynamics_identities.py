@@ -170,11 +170,12 @@ def test_trace_size_does_not_grow_with_body_count(fn):
             f = lambda q_: jb.forward_dynamics(model, q_, q_, q_)
         return len(jax.make_jaxpr(f)(q).jaxpr.eqns)
 
-    # forward_dynamics: the solve unrolls up to AUTO_UNROLLED_MAX_N DoFs (bounded trace) and
-    # loops above, so compare two sizes on the loop path
-    from jaxbody.linalg import AUTO_UNROLLED_MAX_N
+    # forward_dynamics: trees up to unrolled.MAX_BODIES run the unrolled kernel (a program
+    # that grows with the tree, by design, test_unrolled.py bounds it); above it the
+    # vectorised kernel, whose solve loops: compare two sizes on that path
+    from jaxbody import unrolled
 
-    small = 4 if fn != "forward_dynamics" else AUTO_UNROLLED_MAX_N + 4
+    small = 4 if fn != "forward_dynamics" else unrolled.MAX_BODIES + 4
     assert eqns(small) == eqns(64)
 
 

@@ -18,6 +18,8 @@ import pytest
 import scipy.linalg
 from jax.test_util import check_grads
 
+from jaxpr_tools import count_eqns
+
 from jaxbody import linalg
 
 LOOP_METHODS = ("crout", "right_looking")
@@ -41,20 +43,6 @@ def spd_batch(rng, batch, n, dtype=np.float64):
 def methods_for(n):
     """The distinct algorithms for size n ("auto" picks one of them: see test_auto_method_choice_and_empty)."""
     return [m for m in ALL_METHODS[1:] if m != "unrolled" or n <= linalg.UNROLLED_MAX_N]
-
-
-def count_eqns(jaxpr) -> int:
-    """Equations in a jaxpr, including those of every sub-jaxpr (loop bodies, custom rules)."""
-    total = 0
-    for eqn in jaxpr.eqns:
-        total += 1
-        for param in eqn.params.values():
-            for sub in param if isinstance(param, (list, tuple)) else (param,):
-                if isinstance(sub, jax.extend.core.ClosedJaxpr):
-                    total += count_eqns(sub.jaxpr)
-                elif isinstance(sub, jax.extend.core.Jaxpr):
-                    total += count_eqns(sub)
-    return total
 
 
 @contextlib.contextmanager
@@ -403,6 +391,8 @@ def test_mixed_dtypes_follow_the_promotion_rules():
 NO_FLAG_SCRIPT = """
 import jax, numpy as np
 jax.config.update("jax_enable_x64", True)
+from jaxpr_tools import count_eqns
+
 from jaxbody import linalg
 rng = np.random.default_rng(0)
 for n in (8, 20):

@@ -1,0 +1,544 @@
+"""The unrolled kernel: forward dynamics of a small tree as straight-line scalar arithmetic.
+
+The tree's static structure (parents, joints, DoF parents) is known when the model is built,
+so for a small tree the whole of forward dynamics can be written out at trace time as one
+straight-line program over **scalars**: every 3-vector is a tuple of three scalars, every
+rotation a 3×3 tuple of tuples. Nothing has a "3" or an "n_body" axis. Traced on one state the
+program is pure scalar code that XLA fuses into a few loops; under ``jax.vmap`` every scalar
+becomes a contiguous ``(batch,)`` array, so every operation is one long SIMD loop over the
+batch (the batch is the innermost axis by construction) — no gathers, no ``(…, 3)`` arrays,
+no per-body kernel launches.
+
+The algorithm is the composite-rigid-body method with a tree-sparse factorisation, all in
+world axes about one reference point ``c0`` (the base point of body 0):
+
+1. **Kinematics**, root to leaves (MuJoCo's ``mj_kinematics``): body frames, joint anchors and
+   axes, centres of mass, and the unit motion ``S_d = (ω_d, s_d)`` of every DoF in Plücker
+   coordinates about ``c0`` (angular part, velocity of the body point at ``c0``).
+2. **Velocities and bias accelerations**, root to leaves: ``V_k = V_p(k) + Σ_d S_d v_d`` and
+   ``A_k = A_p(k) + Σ_d (V_before(d) × S_d) v_d`` with the root's ``A = (0, −g)`` (gravity as
+   a uniform acceleration of the ground).
+3. **Subtree (augmented) quantities**, leaves to root: the composite inertia of subsystem
+   ``k`` is its mass ``m_k``, its static moment about ``c0`` and its inertia about ``c0`` —
+   the subtree sums the augmented bodies are made of (``m_k``, ``m̄_k`` moved from ``O_0k``
+   to ``c0``, ``I_k`` moved likewise); the subtree force ``F_k = Σ_{S(k)} (I_i A_i + V_i ×*
+   I_i V_i − f_ext,i)``.
+4. **Joint space**: ``M_ab = S_a · (𝕀_k S_b)`` for DoF ``a`` supporting DoF ``b`` on body
+   ``k``, ``bias_d = S_d · F_k(d)``; armature on the diagonal.
+5. **Tree-sparse LDLᵀ** (Featherstone's ``LTDL``): ``M = Lᵀ D L`` with the fill-in confined to
+   each DoF's ancestor chain (``λ(d)``, the DoF parent, is static), then two sparse
+   triangular solves. No LAPACK call (safe under large ``vmap`` batches on CPU), no dense
+   ``n × n`` work beyond the tree's own sparsity.
+
+Symbolic zeros (Python ``0.0``) are propagated at trace time, so terms that vanish by
+structure (a slide's angular part, the ground's velocity, a free joint's unit translations,
+absent gravity or loads) never enter the program.
+
+The program grows with the tree (it is unrolled), so it serves trees up to
+:data:`MAX_BODIES` bodies; larger trees use the vectorised kernel of
+:mod:`jaxbody.kernels`, whose trace size does not depend on the number of bodies. Both give the
+same numbers (tests compare them with each other and with MuJoCo).
+"""
+
+from collections.abc import Sequence
+
+import jax.numpy as jnp
+import numpy as np
+
+from ._types import Array, ArrayLike, Float
+from .joints import BALL, FREE, HINGE, SLIDE
+from .model import Model
+
+__all__ = ["MAX_BODIES", "MAX_DOFS", "applies", "forward_dynamics", "mass_matrix", "bias_forces"]
+
+#: Largest tree (bodies) the unrolled kernel serves by default; above it the vectorised kernel
+#: of :mod:`jaxbody.kernels` runs (compile time flat in the number of bodies).
+MAX_BODIES = 24
+#: Largest number of DoFs the unrolled kernel serves by default.
+MAX_DOFS = 32
+
+
+def applies(model: Model) -> bool:
+    """Whether the unrolled kernel serves ``model`` by default (size thresholds above)."""
+    return 0 < model.nv <= MAX_DOFS and model.n_body <= MAX_BODIES
+
+
+# ----------------------------------------------------------------------------- scalar algebra
+# A "scalar" is a JAX array of shape () (or (batch,) under vmap) or the Python float 0.0/1.0,
+# a structural constant known at trace time that the helpers fold away.
+def _is0(a) -> bool:
+    return type(a) is float and a == 0.0  # not np.float64 (a float subclass): only constants
+
+
+def _is1(a) -> bool:
+    return type(a) is float and a == 1.0
+
+
+def _add(a, b):
+    if _is0(a):
+        return b
+    if _is0(b):
+        return a
+    return a + b
+
+
+def _sub(a, b):
+    if _is0(b):
+        return a
+    if _is0(a):
+        return -b
+    return a - b
+
+
+def _mul(a, b):
+    if _is0(a) or _is0(b):
+        return 0.0
+    if _is1(a):
+        return b
+    if _is1(b):
+        return a
+    return a * b
+
+
+def _sum(*terms):
+    out = 0.0
+    for t in terms:
+        out = _add(out, t)
+    return out
+
+
+ZERO3 = (0.0, 0.0, 0.0)
+
+
+def _vadd(a, b):
+    return tuple(_add(x, y) for x, y in zip(a, b))
+
+
+def _vsub(a, b):
+    return tuple(_sub(x, y) for x, y in zip(a, b))
+
+
+def _vscale(s, a):
+    return tuple(_mul(s, x) for x in a)
+
+
+def _dot(a, b):
+    return _sum(*(_mul(x, y) for x, y in zip(a, b)))
+
+
+def _cross(a, b):
+    return (
+        _sub(_mul(a[1], b[2]), _mul(a[2], b[1])),
+        _sub(_mul(a[2], b[0]), _mul(a[0], b[2])),
+        _sub(_mul(a[0], b[1]), _mul(a[1], b[0])),
+    )
+
+
+def _is_zero3(a) -> bool:
+    return all(_is0(x) for x in a)
+
+
+def _matvec(R, x):
+    return tuple(_dot(row, x) for row in R)
+
+
+def _matmul(A, B):
+    cols = tuple(zip(*B))
+    return tuple(tuple(_dot(row, col) for col in cols) for row in A)
+
+
+def _column(R, k):
+    return (R[0][k], R[1][k], R[2][k])
+
+
+def _quat_matrix(w, x, y, z):
+    """Rotation matrix of a (not necessarily unit) quaternion: MuJoCo normalises first."""
+    s = 2.0 / (w * w + x * x + y * y + z * z)
+    xx, yy, zz = s * x * x, s * y * y, s * z * z
+    xy, xz, yz = s * x * y, s * x * z, s * y * z
+    wx, wy, wz = s * w * x, s * w * y, s * w * z
+    return (
+        (1.0 - (yy + zz), xy - wz, xz + wy),
+        (xy + wz, 1.0 - (xx + zz), yz - wx),
+        (xz - wy, yz + wx, 1.0 - (xx + yy)),
+    )
+
+
+def _axis_angle(axis, angle):
+    """Rodrigues' rotation about the unit ``axis`` by ``angle``: ``E + s[a]× + (1−c)[a]×²``.
+
+    Written with ``[a]×² = a aᵀ − |a|² E`` as :func:`jaxbody.kinematics.axis_angle_matrix`
+    is, so derivatives with respect to the axis agree with the vectorised kernel.
+    """
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    t = 1.0 - c
+    x, y, z = axis
+    n2 = x * x + y * y + z * z
+    return (
+        (1.0 + t * (x * x - n2), t * x * y - s * z, t * x * z + s * y),
+        (t * x * y + s * z, 1.0 + t * (y * y - n2), t * y * z - s * x),
+        (t * x * z - s * y, t * y * z + s * x, 1.0 + t * (z * z - n2)),
+    )
+
+
+def _scalars(x) -> list:
+    """A 1-D array as a list of scalars (one slice each, made once)."""
+    return [x[i] for i in range(x.shape[0])]
+
+
+def _rows3(x, i) -> tuple:
+    return (x[i, 0], x[i, 1], x[i, 2])
+
+
+# ----------------------------------------------------------------------------- spatial algebra
+# motion (angular ω, linear v about c0); force (moment about c0 L, force p)
+def _motion_cross(V, S):
+    """``V × S`` of two motions (``Ṡ`` of a DoF carried by a frame moving with ``V``)."""
+    (w, v), (ws, vs) = V, S
+    return _cross(w, ws), _vadd(_cross(w, vs), _cross(v, ws))
+
+
+def _force_cross(V, F):
+    """``V ×* F``: rate of change of a momentum ``F`` carried by the motion ``V``."""
+    (w, v), (L, p) = V, F
+    return _vadd(_cross(w, L), _cross(v, p)), _cross(w, p)
+
+
+def _inertia_apply(I, S):
+    """Spatial inertia ``(m, h, K)`` about ``c0`` applied to a motion: ``(K ω + h × v, m v + ω × h)``."""
+    m, h, K = I
+    w, v = S
+    L = _vadd(_sym_apply(K, w), _cross(h, v))
+    p = _vadd(_vscale(m, v), _cross(w, h))
+    return L, p
+
+
+def _sym_apply(K, w):
+    """Symmetric 3×3 stored as (xx, yy, zz, xy, xz, yz) applied to ``w``."""
+    xx, yy, zz, xy, xz, yz = K
+    return (
+        _sum(_mul(xx, w[0]), _mul(xy, w[1]), _mul(xz, w[2])),
+        _sum(_mul(xy, w[0]), _mul(yy, w[1]), _mul(yz, w[2])),
+        _sum(_mul(xz, w[0]), _mul(yz, w[1]), _mul(zz, w[2])),
+    )
+
+
+def _spatial_dot(S, F):
+    return _add(_dot(S[0], F[0]), _dot(S[1], F[1]))
+
+
+# ----------------------------------------------------------------------------- structure
+def _structure(model: Model):
+    """Static per-body joint lists and the DoF parent array ``λ`` (NumPy, trace time)."""
+    joints = model.joints
+    nb = model.n_body
+    body_joints: list[list[int]] = [[] for _ in range(nb)]
+    for j, b in enumerate(joints.body):
+        body_joints[b].append(j)
+    dof_body = list(joints.dof_body)
+    parent = list(model.tree.parent)
+    # last DoF on each body or its nearest ancestor with DoFs
+    last_dof = [-1] * nb
+    dof_parent = [-1] * model.nv
+    for b in range(nb):
+        p = parent[b]
+        above = last_dof[p] if p >= 0 else -1
+        for d in range(model.nv):
+            if dof_body[d] == b:
+                dof_parent[d] = above
+                above = d
+        last_dof[b] = above
+    return body_joints, dof_parent
+
+
+def _kinematics(model: Model, q: list):
+    """Body frames, DoF motions about ``c0``, centres of mass (scalar tuples), root to leaves."""
+    joints = model.joints
+    nb = model.n_body
+    parent = model.tree.parent
+    body_joints, _ = _structure(model)
+    qadr, types = joints.qposadr, joints.type
+    qpos0 = model.qpos0
+    R: list = [None] * nb
+    x: list = [None] * nb
+    base: list = [None] * nb
+    # per joint: (anchor, world axis); ball/free DoFs are finished once the body's frame is known
+    anchors: dict[int, tuple] = {}
+    axes: dict[int, tuple] = {}
+    for b in range(nb):
+        js = body_joints[b]
+        if js and types[js[0]] == FREE:
+            a = qadr[js[0]]
+            R[b] = _quat_matrix(q[a + 3], q[a + 4], q[a + 5], q[a + 6])
+            x[b] = (q[a], q[a + 1], q[a + 2])
+            anchors[js[0]] = x[b]
+            base[b] = x[b]
+            continue
+        Roff = _quat_matrix(*(model.body_quat[b, i] for i in range(4)))
+        pos = _rows3(model.body_pos, b)
+        p = parent[b]
+        if p < 0:
+            Rb, xb = Roff, pos
+        else:
+            Rb, xb = _matmul(R[p], Roff), _vadd(x[p], _matvec(R[p], pos))
+        for j in js:
+            jp = _rows3(model.joint_pos, j)
+            ja = _rows3(model.joint_axis, j)
+            anchor = _vadd(xb, _matvec(Rb, jp))
+            anchors[j] = anchor
+            kind = types[j]
+            if kind == HINGE:
+                axis = _matvec(Rb, ja)
+                axes[j] = axis
+                Rb = _matmul(Rb, _axis_angle(ja, q[qadr[j]] - qpos0[qadr[j]]))
+                xb = _vsub(anchor, _matvec(Rb, jp))
+            elif kind == SLIDE:
+                axis = _matvec(Rb, ja)
+                axes[j] = axis
+                xb = _vadd(xb, _vscale(q[qadr[j]] - qpos0[qadr[j]], axis))
+            else:  # BALL
+                a = qadr[j]
+                Rb = _matmul(Rb, _quat_matrix(q[a], q[a + 1], q[a + 2], q[a + 3]))
+                xb = _vsub(anchor, _matvec(Rb, jp))
+        R[b], x[b] = Rb, xb
+        base[b] = anchors[js[0]] if js else xb
+    c0 = base[0]
+    # DoF motions about c0, in DoF order
+    S: list = []
+    for j in range(joints.n_joint):
+        b = joints.body[j]
+        kind = types[j]
+        if kind == HINGE:
+            w = axes[j]
+            S.append((w, _cross(w, _vsub(c0, anchors[j]))))
+        elif kind == SLIDE:
+            S.append((ZERO3, axes[j]))
+        else:
+            if kind == FREE:
+                for k in range(3):
+                    S.append((ZERO3, tuple(1.0 if i == k else 0.0 for i in range(3))))
+            for k in range(3):
+                w = _column(R[b], k)
+                S.append((w, _cross(w, _vsub(c0, anchors[j]))))
+    return R, x, c0, S
+
+
+def _body_inertias(model: Model, R, x, c0):
+    """Spatial inertia ``(m, h, K)`` of every body about ``c0`` (world axes) and its CM."""
+    out, com = [], []
+    for b in range(model.n_body):
+        m = model.body_mass[b]
+        c = _vadd(x[b], _matvec(R[b], _rows3(model.body_com, b)))
+        com.append(c)
+        # the symmetric part (derivatives then agree with the vectorised kernel's R I Rᵀ)
+        Ib = tuple(tuple(0.5 * (model.body_inertia[b, i, k] + model.body_inertia[b, k, i]) for k in range(3)) for i in range(3))
+        T = _matmul(R[b], Ib)  # R I, then (R I) Rᵀ: six entries of the symmetric result
+        Rb = R[b]
+        Iw = {(i, k): _dot(T[i], Rb[k]) for i in range(3) for k in range(i, 3)}
+        r = _vsub(c, c0)
+        h = _vscale(m, r)
+        # K = I_C + m (|r|² E − r rᵀ) = I_C + (h·r) E − h rᵀ
+        hr = _dot(h, r)
+        K = (
+            Iw[0, 0] + hr - h[0] * r[0],
+            Iw[1, 1] + hr - h[1] * r[1],
+            Iw[2, 2] + hr - h[2] * r[2],
+            Iw[0, 1] - h[0] * r[1],
+            Iw[0, 2] - h[0] * r[2],
+            Iw[1, 2] - h[1] * r[2],
+        )
+        out.append((m, h, K))
+    return out, com
+
+
+def _inertia_add(a, b):
+    return (_add(a[0], b[0]), _vadd(a[1], b[1]), tuple(_add(x, y) for x, y in zip(a[2], b[2])))
+
+
+def _dof_owners(model: Model):
+    """For each joint: its DoF indices, and for FREE joints the (translation, rotation) split."""
+    joints = model.joints
+    out = []
+    for j in range(joints.n_joint):
+        d0 = joints.dofadr[j]
+        kind = joints.type[j]
+        n = {HINGE: 1, SLIDE: 1, BALL: 3, FREE: 6}[kind]
+        out.append(list(range(d0, d0 + n)))
+    return out
+
+
+def _bias_and_mass(model: Model, q, v, gravity, external, want_bias=True):
+    """Joint-space ``M`` (dict over the tree's nonzero lower triangle) and ``bias`` (list)."""
+    joints = model.joints
+    nb, nv = model.n_body, model.nv
+    parent = model.tree.parent
+    body_joints, dof_parent = _structure(model)
+    R, x, c0, S = _kinematics(model, q)
+    inertia, com = _body_inertias(model, R, x, c0)
+    dofs_of_joint = _dof_owners(model)
+
+    bias = None
+    if want_bias:
+        A_ground = (ZERO3, ZERO3 if gravity is None else tuple(-gi for gi in gravity))
+        V: list = [None] * nb
+        A: list = [None] * nb
+        for b in range(nb):
+            p = parent[b]
+            Vb = (ZERO3, ZERO3) if p < 0 else V[p]
+            Ab = A_ground if p < 0 else A[p]
+            for j in body_joints[b]:
+                ds = dofs_of_joint[j]
+                if joints.type[j] == FREE:
+                    groups = [ds[:3], ds[3:]]  # translation moves the frame before the rotation
+                else:
+                    groups = [ds]
+                for group in groups:
+                    Vbefore = Vb
+                    for d in group:
+                        Sd = S[d]
+                        if not (_is_zero3(Vbefore[0]) and _is_zero3(Vbefore[1])):
+                            Sdot = _motion_cross(Vbefore, Sd)
+                            Ab = (_vadd(Ab[0], _vscale(v[d], Sdot[0])), _vadd(Ab[1], _vscale(v[d], Sdot[1])))
+                        Vb = (_vadd(Vb[0], _vscale(v[d], Sd[0])), _vadd(Vb[1], _vscale(v[d], Sd[1])))
+            V[b], A[b] = Vb, Ab
+        F: list = [None] * nb
+        for b in range(nb):
+            IA = _inertia_apply(inertia[b], A[b])
+            IV = _inertia_apply(inertia[b], V[b])
+            VxIV = _force_cross(V[b], IV)
+            L, p_ = _vadd(IA[0], VxIV[0]), _vadd(IA[1], VxIV[1])
+            if external is not None:
+                f = external[b][:3]
+                t = external[b][3:]
+                L = _vsub(L, _vadd(t, _cross(_vsub(com[b], c0), f)))
+                p_ = _vsub(p_, f)
+            F[b] = (L, p_)
+        for b in reversed(range(nb)):
+            p = parent[b]
+            if p >= 0:
+                F[p] = (_vadd(F[p][0], F[b][0]), _vadd(F[p][1], F[b][1]))
+        dof_body = joints.dof_body
+        bias = [_spatial_dot(S[d], F[dof_body[d]]) for d in range(nv)]
+
+    # composite inertias, leaves to root
+    Ic = list(inertia)
+    for b in reversed(range(nb)):
+        p = parent[b]
+        if p >= 0:
+            Ic[p] = _inertia_add(Ic[p], Ic[b])
+    M: dict = {}
+    dof_body = joints.dof_body
+    for e in range(nv):
+        Fe = _inertia_apply(Ic[dof_body[e]], S[e])
+        d = e
+        while d >= 0:
+            M[e, d] = _spatial_dot(S[d], Fe)
+            d = dof_parent[d]
+    for d in range(nv):
+        M[d, d] = _add(M[d, d], model.dof_armature[d])
+    return M, bias, dof_parent
+
+
+def _ltdl_solve(M: dict, dof_parent: Sequence[int], b: list) -> list:
+    """Solve ``M x = b`` with Featherstone's tree-sparse ``M = Lᵀ D L`` (in place on copies)."""
+    n = len(b)
+    M = dict(M)
+    lam = dof_parent
+    inv_d: list = [None] * n
+    for k in reversed(range(n)):
+        inv_d[k] = 1.0 / M[k, k]  # final: only descendants (indices > k) update row k
+        i = lam[k]
+        while i >= 0:
+            a = M[k, i] * inv_d[k]
+            j = i
+            while j >= 0:
+                M[i, j] = _sub(M[i, j], _mul(a, M[k, j]))
+                j = lam[j]
+            M[k, i] = a
+            i = lam[i]
+    x = list(b)
+    for i in reversed(range(n)):  # Lᵀ y = b
+        j = lam[i]
+        while j >= 0:
+            x[j] = _sub(x[j], _mul(M[i, j], x[i]))
+            j = lam[j]
+    x = [_mul(xi, inv_d[i]) for i, xi in enumerate(x)]  # D z = y
+    for i in range(n):  # L x = z
+        j = lam[i]
+        while j >= 0:
+            x[i] = _sub(x[i], _mul(M[i, j], x[j]))
+            j = lam[j]
+    return x
+
+
+def _stack(values: list, dtype) -> Array:
+    return jnp.stack([jnp.asarray(v, dtype) for v in values])
+
+
+def _external_rows(external):
+    if external is None:
+        return None
+    return [tuple(external[b, i] for i in range(6)) for b in range(external.shape[0])]
+
+
+def forward_dynamics(
+    model: Model,
+    q: Float[ArrayLike, " nq"],
+    v: Float[ArrayLike, " nv"],
+    force: Float[ArrayLike, " nv"] | None = None,
+    *,
+    gravity: Float[ArrayLike, "3"] | None = None,
+    external: Float[ArrayLike, "n_body 6"] | None = None,
+) -> Float[Array, " nv"]:
+    """``a = M⁻¹ (force − bias)`` by the unrolled kernel (no checks; module docstring).
+
+    Args:
+        model: the model (any size; the program grows with it, see :data:`MAX_BODIES`).
+        q, v: the state.
+        force: generalized force in the layout of ``v`` (drives, springs, dampers, …);
+            ``None`` = zero.
+        gravity: uniform field acting on every body (world, m/s²); ``None`` = none (pass
+            ``model.gravity`` for the model's own).
+        external: ``(n_body, 6)`` world force and torque at each centre of mass
+            (MuJoCo ``xfrc_applied``); ``None`` = none.
+    """
+    dtype = model.body_pos.dtype
+    q = jnp.asarray(q, dtype)
+    v = jnp.asarray(v, dtype)
+    g = None if gravity is None else tuple(jnp.asarray(gravity, dtype)[i] for i in range(3))
+    ext = None if external is None else _external_rows(jnp.asarray(external, dtype))
+    M, bias, lam = _bias_and_mass(model, _scalars(q), _scalars(v), g, ext)
+    rhs = [-bi for bi in bias]
+    if force is not None:
+        f = _scalars(jnp.asarray(force, dtype))
+        rhs = [_add(fi, ri) for fi, ri in zip(f, rhs)]
+    return _stack(_ltdl_solve(M, lam, rhs), dtype)
+
+
+def mass_matrix(model: Model, q: Float[ArrayLike, " nq"]) -> Float[Array, "nv nv"]:
+    """Joint-space mass matrix by the unrolled kernel (armature included; no checks)."""
+    dtype = model.body_pos.dtype
+    q = jnp.asarray(q, dtype)
+    M, _, _ = _bias_and_mass(model, _scalars(q), [0.0] * model.nv, None, None, want_bias=False)
+    nv = model.nv
+    zero = jnp.zeros((), dtype)
+    rows = [[M.get((max(a, b), min(a, b)), zero) for b in range(nv)] for a in range(nv)]
+    return jnp.stack([_stack(r, dtype) for r in rows])
+
+
+def bias_forces(
+    model: Model,
+    q: Float[ArrayLike, " nq"],
+    v: Float[ArrayLike, " nv"],
+    *,
+    gravity: Float[ArrayLike, "3"] | None = None,
+    external: Float[ArrayLike, "n_body 6"] | None = None,
+) -> Float[Array, " nv"]:
+    """``bias − Jᵀ external`` by the unrolled kernel (``gravity=None``: no gravity; no checks)."""
+    dtype = model.body_pos.dtype
+    q = jnp.asarray(q, dtype)
+    v = jnp.asarray(v, dtype)
+    g = None if gravity is None else tuple(jnp.asarray(gravity, dtype)[i] for i in range(3))
+    ext = None if external is None else _external_rows(jnp.asarray(external, dtype))
+    _, bias, _ = _bias_and_mass(model, _scalars(q), _scalars(v), g, ext)
+    return _stack(bias, dtype)
