@@ -237,6 +237,7 @@ def _dp_error(system):
     return max(em, ec)
 
 
+@pytest.mark.slow  # 17-30 s on 2 cores; the slow job runs it
 def test_multiple_shooting_fits_a_chaotic_horizon():
     # 8 segments of 1 s: each stays in the region where the loss is nearly quadratic
     t, sol, P, x0 = _chaotic_double_pendulum()
@@ -256,6 +257,7 @@ def test_single_shooting_fails_on_the_chaotic_horizon():
         assert _dp_error(res.system) > 0.1
 
 
+@pytest.mark.slow  # 17-30 s on 2 cores; the slow job runs it
 def test_fit_link_lengths_with_centres_at_mid_link():
     # Lengths are parameters like any other: a build function ties the centres of mass to the
     # middle of each link (com = L/2), so both lengths enter the motion.
@@ -323,6 +325,7 @@ def test_fit_rolling_disk_radius_and_mass():
     np.testing.assert_allclose(float(res.system.base.radius), 0.3, rtol=1e-6)
 
 
+@pytest.mark.slow  # 17-30 s on 2 cores; the slow job runs it
 def test_rolling_disk_loss_gradient_matches_finite_differences():
     # The default-suite part of the disk fit: the loss and its forward-mode derivative with
     # respect to (log mass, log radius), through the projection and the constrained solve.
@@ -420,6 +423,7 @@ def _fit_spatial(n_links, T, n_t, steps):
     return res, bt, bf, b0
 
 
+@pytest.mark.slow  # 17-30 s on 2 cores; the slow job runs it
 def test_fit_spatial_two_link_arm_log_cholesky_and_damping():
     # log-Cholesky inertias (ten variables per body, fewer identifiable combinations) and
     # damping from +-30 %: the identifiable (base) parameters to 1e-6 of the largest

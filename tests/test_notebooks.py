@@ -16,6 +16,8 @@ import nbformat
 import pytest
 
 NOTEBOOKS = sorted((pathlib.Path(__file__).resolve().parents[1] / "notebooks").glob("*.ipynb"))
+# the two longest (75-100 s each on 2 cores) run in the slow job; the rest in the default suite
+SLOW_NOTEBOOKS = {"04_disk_on_a_plane.ipynb", "06_parameter_identification.ipynb"}
 CELL_TIMEOUT_S = 300
 KERNEL_NAME = "jaxbody-tests"
 
@@ -56,7 +58,11 @@ def execute(path: pathlib.Path):
 
 @pytest.mark.skipif(not NOTEBOOKS, reason="no notebooks/*.ipynb yet")
 @pytest.mark.timeout(1800)
-@pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.name for p in NOTEBOOKS])
+@pytest.mark.parametrize(
+    "path",
+    [pytest.param(p, marks=pytest.mark.slow) if p.name in SLOW_NOTEBOOKS else p for p in NOTEBOOKS],
+    ids=[p.name for p in NOTEBOOKS],
+)
 def test_notebook_runs(path, kernel_env):
     execute(path)
 
