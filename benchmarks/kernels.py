@@ -82,6 +82,27 @@ def measure(name, args, tmp):
             "batch_steps_per_s": args.batch * n / tb["median_s"],
             "batched_hlo_instructions": len(batched.as_text().splitlines()),
         }
+    if name in args.simulate_models.split(","):
+        # through the public API: jb.simulate of a scene, vmapped; the "rk4" preset (stages
+        # written out for the unrolled kernel) against diffrax's tableau loop over the stages
+        import diffrax
+
+        from jaxbody.simulation import RK4
+
+        for k in ("unrolled", "vectorised"):
+            sc = jb.scene(model, kernel=k)
+            for label, solver in (("rk4 preset", "rk4"), ("tableau RK4", RK4())):
+                def roll(q, v, sc=sc, solver=solver):
+                    sol = jb.simulate(sc, q, v, n * h, solver=solver, dt0=h, saveat=diffrax.SaveAt(t1=True),
+                                      max_steps=n + 1)
+                    return sol.q[-1]
+
+                t0 = time.perf_counter()
+                fn = jax.jit(jax.vmap(roll)).lower(q0, v0).compile()
+                compile_s = time.perf_counter() - t0
+                tb = _common.time_per_call(lambda: jax.block_until_ready(fn(q0, v0)), min_time=args.min_time)
+                out[k][f"simulate {label}"] = {"batch_steps_per_s": args.batch * n / tb["median_s"],
+                                               "compile_s": compile_s}
     m = _mujoco_rigid(str(path))
     m.opt.integrator = int(mujoco.mjtIntegrator.mjINT_RK4)
     d = mujoco.MjData(m)
@@ -100,6 +121,8 @@ def main(argv=None):
     p.add_argument("--batch", type=int, default=1024)
     p.add_argument("--steps", type=int, default=100)
     p.add_argument("--min-time", type=float, default=0.5)
+    p.add_argument("--simulate-models", default="panda",
+                   help="models also timed through a vmapped jb.simulate, rk4 preset vs tableau RK4")
     p.add_argument("--models-dir", type=pathlib.Path, default=_common.REPO.parent / "shared" / "models")
     p.add_argument("--out", type=pathlib.Path, default=_common.RESULTS)
     p.add_argument("--name", default="kernels")
@@ -132,8 +155,17 @@ def main(argv=None):
         row += [f"{r['mj_step_us']:.2f}", f"{r['unrolled']['single_step_us'] / r['mj_step_us']:.2f}",
                 f"{r['auto']['batch_steps_per_s'] / r['vectorised']['batch_steps_per_s']:.2f}"]
         table.append(row)
+    sim_rows = [[r["model"], k, label, f"{r[k][f'simulate {label}']['batch_steps_per_s']:.3g}",
+                 f"{r[k][f'simulate {label}']['compile_s']:.1f}"]
+                for r in rows for k in ("unrolled", "vectorised") for label in ("rk4 preset", "tableau RK4")
+                if f"simulate {label}" in r[k]]
+    md_sim = ["## Through `jb.simulate` (vmapped batch)", "",
+              "`jax.jit(jax.vmap(...))` of `jb.simulate(jb.scene(model, kernel=K), ..., solver=S, dt0=1e-3)`: "
+              "the `\"rk4\"` preset (stages written out when the kernel is unrolled) against "
+              "`jaxbody.simulation.RK4()` (diffrax's loop over a Butcher tableau).", "",
+              _common.markdown_table(["model", "kernel", "solver", "batch steps/s", "compile s"], sim_rows), ""]
     md = [f"# Forward-dynamics kernels (batch {args.batch}, {args.steps} RK4 steps, float64)", "",
-          _common.stamp_markdown(stamp), "", _common.markdown_table(headers, table), ""]
+          _common.stamp_markdown(stamp), "", _common.markdown_table(headers, table), ""] + (md_sim if sim_rows else [])
     (args.out / f"{args.name}.md").write_text("\n".join(md))
 
 

@@ -196,7 +196,8 @@ def worker_jaxbody(cfg, rec):
     rep = dict(min_time=cfg["min_time"], repeats=cfg["repeats"])
 
     def rollout(model, q0, v0, t1):
-        sol = jb.simulate(model, q0, v0, t1, solver="rk4", dt0=DT, saveat=diffrax.SaveAt(t1=True),
+        system = jb.scene(model, kernel=cfg["kernel"]) if cfg.get("kernel") else model
+        sol = jb.simulate(system, q0, v0, t1, solver="rk4", dt0=DT, saveat=diffrax.SaveAt(t1=True),
                           max_steps=cfg["max_steps"])
         return sol.q[-1], sol.v[-1], sol.stats["num_steps"]
 
@@ -477,7 +478,7 @@ def write_markdown(results, path):
              if (i[:2] == "mj" and i != "mjx" and "mujoco" in results["impls"]) or i in results["impls"]]
     L = [f"# RK4 rollout throughput: jaxbody `jb.simulate` vs MuJoCo `rollout` vs MJX", "", _common.stamp_markdown(s),
          f"- wall time: {s.get('wall_s', 0):.0f} s; MuJoCo threads (all cores): {results['threads']}; "
-         f"jaxbody chunk {results['chunk']}, devices {results['devices']}", ""]
+         f"jaxbody chunk {results['chunk']}, devices {results['devices']}, kernel {results.get('kernel') or 'default (vectorised)'}", ""]
     if results.get("note"):
         L += [f"**Note.** {results['note']}", ""]
     L += ["System-steps/s (batch × steps / wall time of one rollout call), RK4, dt = 1e-3, rigid-body "
@@ -636,6 +637,9 @@ def parse_args(argv=None):
     p.add_argument("--max-work", type=int, default=200_000,
                    help="cap batch x steps of a timed call: steps = max(min_steps, min(steps, max_work // batch))")
     p.add_argument("--single-steps", type=int, default=1000, help="steps of the single-trajectory timing (T2)")
+    p.add_argument("--kernel", choices=("auto", "unrolled", "vectorised"),
+                   help="forward-dynamics kernel of the jaxbody runs: jb.simulate(jb.scene(model, kernel=KERNEL), ...); "
+                        "default: the model itself (jaxbody.kernels.DEFAULT_KERNEL)")
     p.add_argument("--chunk", type=int, default=256, help="batches above this run through jb.vmap_chunked(.., CHUNK)")
     p.add_argument("--devices", type=int, default=_common.core_count(),
                    help="CPU devices jb.vmap_chunked splits big batches over (sets "
@@ -691,6 +695,7 @@ def main(argv=None):
     args.out.mkdir(parents=True, exist_ok=True)
     results = {"stamp": stamp, "models": args.models, "batches": args.batches, "impls": args.impls,
                "mjx_batches": args.mjx_batches, "threads": args.threads, "chunk": args.chunk, "devices": args.devices,
+               "kernel": args.kernel,
                "steps": args.steps, "max_work": args.max_work, "single_steps": args.single_steps, "dt": DT,
                "accuracy_states": args.accuracy_states, "skip": sorted(map(list, args.skip)), "note": args.note,
                "runs": {}}
@@ -708,7 +713,7 @@ def main(argv=None):
             base = dict(model=model, path=str(path), min_time=args.min_time, repeats=args.repeats, seed=args.seed,
                         steps=args.steps, min_steps=args.min_steps, max_work=args.max_work,
                         single_steps=args.single_steps, threads=args.threads, chunk=args.chunk,
-                        devices=args.devices, accuracy=model in args.accuracy_models,
+                        devices=args.devices, kernel=args.kernel, accuracy=model in args.accuracy_models,
                         accuracy_states=args.accuracy_states, max_steps=max(args.steps, args.single_steps, 1000) + 16,
                         tsit5_max_steps=20_000)
             batches = [b for b in args.batches if (model, b) not in args.skip]

@@ -31,12 +31,10 @@ Conventions (docs/conventions.md):
 * Reactions: ``(force, moment)`` the parent exerts on body ``k``, moment about ``O_0k``.
 """
 
-import functools
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax import custom_batching
 
 from ._types import Array, ArrayLike, Float
 from ._util import check_shape, index
@@ -337,8 +335,10 @@ def passive_forces_at(model: Model, q: Float[Array, " nq"], v: Float[Array, " nv
 #: The forward-dynamics kernels :func:`acceleration` can run (see docs/performance.md).
 KERNELS = ("auto", "unrolled", "vectorised")
 #: What ``kernel=None`` means: the vectorised kernel, whose compile time and memory are flat in
-#: the tree's size. ``"auto"`` (the unrolled kernel for single states) is opt-in while its
-#: compile cost is being measured (docs/performance.md).
+#: the tree's size and which does not care whether the model is a constant or a traced value.
+#: ``"auto"`` (the unrolled kernel for small trees) is opt-in: faster batches and, for a model
+#: the program closes over, faster single states, but compile times of 5-30 s
+#: (docs/performance.md).
 DEFAULT_KERNEL = "vectorised"
 
 
@@ -355,36 +355,6 @@ def _vectorised_acceleration(model: Model, q, v, force, gravity, external):
 
 def _unrolled_acceleration(model: Model, q, v, force, gravity, external):
     return unrolled.forward_dynamics(model, q, v, force, gravity=gravity, external=external)
-
-
-@functools.lru_cache(maxsize=256)
-def _routed(treedef):
-    """``auto``: the unrolled kernel for one state, the vectorised one for a ``vmap`` batch.
-
-    A ``custom_vmap`` rule sends batched calls to the vectorised kernel (XLA's CPU fusion
-    recomputes the shared subexpressions of a long scalar program once per fused output, which
-    costs more over a batch than the vectorised kernel's few large operations; a single state
-    has no batch to amortise launches, and there the scalar program wins). Derivatives are
-    those of the unrolled kernel (a ``custom_jvp`` over the routing: ``custom_vmap`` has no
-    differentiation rule of its own); both kernels compute the same function.
-    """
-
-    def unrolled_fn(*leaves):
-        return _unrolled_acceleration(*jax.tree.unflatten(treedef, leaves))
-
-    def vectorised_fn(*leaves):
-        return _vectorised_acceleration(*jax.tree.unflatten(treedef, leaves))
-
-    batched = custom_batching.custom_vmap(unrolled_fn)
-
-    @batched.def_vmap
-    def _rule(axis_size, in_batched, *leaves):
-        in_axes = tuple(0 if b else None for b in in_batched)
-        return jax.vmap(vectorised_fn, in_axes=in_axes, axis_size=axis_size)(*leaves), True
-
-    routed = jax.custom_jvp(lambda *leaves: batched(*leaves))
-    routed.defjvp(lambda primals, tangents: jax.jvp(unrolled_fn, primals, tangents))
-    return routed
 
 
 def acceleration(
@@ -410,10 +380,9 @@ def acceleration(
         external: ``(n_body, 6)`` world force and torque at each centre of mass.
         kernel: ``"unrolled"`` (straight-line scalar program, :mod:`jaxbody.unrolled`),
             ``"vectorised"`` (:class:`Data` and the kernels of this module) or ``"auto"``:
-            the unrolled kernel for single states of trees up to
-            :data:`jaxbody.unrolled.MAX_BODIES` bodies and the vectorised one for ``vmap``
-            batches and larger trees (docs/performance.md). ``None``:
-            :data:`DEFAULT_KERNEL`.
+            the unrolled kernel for trees up to :data:`jaxbody.unrolled.MAX_BODIES` bodies
+            and :data:`jaxbody.unrolled.MAX_DOFS` DoFs, the vectorised one for larger trees
+            (docs/performance.md: when each is faster). ``None``: :data:`DEFAULT_KERNEL`.
     """
     kernel = DEFAULT_KERNEL if kernel is None else kernel
     if kernel not in KERNELS:
@@ -430,7 +399,4 @@ def acceleration(
     args = (model, q, v, force, gravity, external)
     if kernel == "vectorised" or (kernel == "auto" and not unrolled.applies(model)):
         return _vectorised_acceleration(*args)
-    if kernel == "unrolled":
-        return _unrolled_acceleration(*args)
-    leaves, treedef = jax.tree.flatten(args)
-    return _routed(treedef)(*leaves)
+    return _unrolled_acceleration(*args)

@@ -461,8 +461,9 @@ def scene(
             ``False`` forces the spatial path; ``True`` requires the planar path.
         kernel: forward-dynamics kernel of the spatial path (:func:`jaxbody.kernels.acceleration`):
             ``None`` (:data:`jaxbody.kernels.DEFAULT_KERNEL`, the vectorised kernel), ``"auto"``
-            (the unrolled kernel for single states of small trees, the vectorised one for
-            batches and large trees), ``"unrolled"`` or ``"vectorised"``.
+            (the unrolled kernel for trees up to :data:`jaxbody.unrolled.MAX_BODIES` bodies,
+            the vectorised one above; ``solver="rk4"`` then writes its four stages out),
+            ``"unrolled"`` or ``"vectorised"``. docs/performance.md says when each is faster.
 
     Returns:
         The scene.

@@ -40,6 +40,7 @@ The program grows with the tree (it is unrolled), so it serves trees up to
 same numbers (tests compare them with each other and with MuJoCo).
 """
 
+import functools
 from collections.abc import Sequence
 
 import jax.numpy as jnp
@@ -51,11 +52,14 @@ from .model import Model
 
 __all__ = ["MAX_BODIES", "MAX_DOFS", "applies", "forward_dynamics", "mass_matrix", "bias_forces"]
 
-#: Largest tree (bodies) the unrolled kernel serves by default; above it the vectorised kernel
-#: of :mod:`jaxbody.kernels` runs (compile time flat in the number of bodies).
-MAX_BODIES = 24
-#: Largest number of DoFs the unrolled kernel serves by default.
-MAX_DOFS = 32
+#: Largest tree (bodies, the world included) ``kernel="auto"`` gives the unrolled kernel; above
+#: it the vectorised kernel of :mod:`jaxbody.kernels` runs (compile time flat in the number of
+#: bodies). Measured (docs/performance.md): for the 8-body Panda arm the unrolled RK4 step is
+#: about 4x faster than the vectorised one and its batches 2.5x faster; for the 13-body,
+#: 18-DoF ANYmal C its single-state program compiles for minutes and runs 4x slower.
+MAX_BODIES = 12
+#: Largest number of DoFs ``kernel="auto"`` gives the unrolled kernel.
+MAX_DOFS = 12
 
 
 def applies(model: Model) -> bool:
@@ -229,26 +233,31 @@ def _spatial_dot(S, F):
 
 # ----------------------------------------------------------------------------- structure
 def _structure(model: Model):
-    """Static per-body joint lists and the DoF parent array ``λ`` (NumPy, trace time)."""
-    joints = model.joints
-    nb = model.n_body
+    """Static per-body joint lists and the DoF parent array ``λ`` (trace time, cached per tree)."""
+    return _structure_of(model.joints, model.tree)
+
+
+@functools.lru_cache(maxsize=256)
+def _structure_of(joints, tree):
+    nb = tree.n_body
     body_joints: list[list[int]] = [[] for _ in range(nb)]
     for j, b in enumerate(joints.body):
         body_joints[b].append(j)
     dof_body = list(joints.dof_body)
-    parent = list(model.tree.parent)
+    nv = len(dof_body)
+    parent = list(tree.parent)
     # last DoF on each body or its nearest ancestor with DoFs
     last_dof = [-1] * nb
-    dof_parent = [-1] * model.nv
+    dof_parent = [-1] * nv
     for b in range(nb):
         p = parent[b]
         above = last_dof[p] if p >= 0 else -1
-        for d in range(model.nv):
+        for d in range(nv):
             if dof_body[d] == b:
                 dof_parent[d] = above
                 above = d
         last_dof[b] = above
-    return body_joints, dof_parent
+    return tuple(tuple(js) for js in body_joints), tuple(dof_parent)
 
 
 def _kinematics(model: Model, q: list):
@@ -475,10 +484,16 @@ def _stack(values: list, dtype) -> Array:
     return jnp.stack([jnp.asarray(v, dtype) for v in values])
 
 
-def _external_rows(external):
+def _scalar_inputs(model: Model, q, v, gravity, external):
+    """The state, gravity and body loads as the scalar lists and tuples the passes take."""
+    dtype = model.body_pos.dtype
+    q = _scalars(jnp.asarray(q, dtype))
+    v = _scalars(jnp.asarray(v, dtype))
+    g = None if gravity is None else tuple(_scalars(jnp.asarray(gravity, dtype)))
     if external is None:
-        return None
-    return [tuple(external[b, i] for i in range(6)) for b in range(external.shape[0])]
+        return q, v, g, None
+    external = jnp.asarray(external, dtype)
+    return q, v, g, [tuple(external[b, i] for i in range(6)) for b in range(external.shape[0])]
 
 
 def forward_dynamics(
@@ -503,11 +518,7 @@ def forward_dynamics(
             (MuJoCo ``xfrc_applied``); ``None`` = none.
     """
     dtype = model.body_pos.dtype
-    q = jnp.asarray(q, dtype)
-    v = jnp.asarray(v, dtype)
-    g = None if gravity is None else tuple(jnp.asarray(gravity, dtype)[i] for i in range(3))
-    ext = None if external is None else _external_rows(jnp.asarray(external, dtype))
-    M, bias, lam = _bias_and_mass(model, _scalars(q), _scalars(v), g, ext)
+    M, bias, lam = _bias_and_mass(model, *_scalar_inputs(model, q, v, gravity, external))
     rhs = [-bi for bi in bias]
     if force is not None:
         f = _scalars(jnp.asarray(force, dtype))
@@ -535,10 +546,5 @@ def bias_forces(
     external: Float[ArrayLike, "n_body 6"] | None = None,
 ) -> Float[Array, " nv"]:
     """``bias − Jᵀ external`` by the unrolled kernel (``gravity=None``: no gravity; no checks)."""
-    dtype = model.body_pos.dtype
-    q = jnp.asarray(q, dtype)
-    v = jnp.asarray(v, dtype)
-    g = None if gravity is None else tuple(jnp.asarray(gravity, dtype)[i] for i in range(3))
-    ext = None if external is None else _external_rows(jnp.asarray(external, dtype))
-    _, bias, _ = _bias_and_mass(model, _scalars(q), _scalars(v), g, ext)
-    return _stack(bias, dtype)
+    _, bias, _ = _bias_and_mass(model, *_scalar_inputs(model, q, v, gravity, external))
+    return _stack(bias, model.body_pos.dtype)

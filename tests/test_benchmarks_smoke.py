@@ -98,11 +98,15 @@ def test_kernels_benchmark_smoke(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(REPO))
     env.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
     cmd = [sys.executable, str(BENCH / "kernels.py"), "--out", str(tmp_path), "--name", "rec",
-           "--models", "chain2", "--batch", "4", "--steps", "3", "--min-time", "0.01"]
+           "--models", "chain2", "--batch", "4", "--steps", "3", "--min-time", "0.01",
+           "--simulate-models", "chain2"]
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env, cwd=REPO)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
     rec = json.loads((tmp_path / "rec.json").read_text())
     row = rec["results"][0]
     for k in ("unrolled", "vectorised", "auto"):
         assert row[k]["single_step_us"] > 0 and row[k]["batch_steps_per_s"] > 0
+    for k in ("unrolled", "vectorised"):
+        assert row[k]["simulate rk4 preset"]["batch_steps_per_s"] > 0 and row[k]["simulate tableau RK4"]["compile_s"] > 0
     assert row["mj_step_us"] > 0 and "| chain2 |" in (tmp_path / "rec.md").read_text()
+    assert "| chain2 | unrolled | rk4 preset |" in (tmp_path / "rec.md").read_text()

@@ -68,7 +68,8 @@ def test_unrolled_on_random_trees_with_every_joint_kind(seed):
 
 
 def test_auto_routes_batches_and_derivatives_consistently(models_dir):
-    """``auto``: unrolled for one state, vectorised under vmap; values and derivatives agree."""
+    """``auto`` on a small tree: the unrolled kernel for one state and under vmap; values and
+    derivatives agree with the vectorised kernel."""
     model = jb.from_mjcf(str(models_dir / "panda.xml"))
     rng = np.random.default_rng(5)
     q, v = _state(model, rng, batch=64)
@@ -79,10 +80,14 @@ def test_auto_routes_batches_and_derivatives_consistently(models_dir):
     a_auto = jax.jit(jax.vmap(f("auto")))(q, v)
     a_vec = jax.jit(jax.vmap(f("vectorised")))(q, v)
     assert float(jnp.max(jnp.abs(a_auto - a_vec))) <= 1e-11 * float(jnp.max(jnp.abs(a_vec)))
-    # the batched program is the vectorised kernel (custom_vmap rule), not the unrolled one
-    n_auto = count_eqns(jax.make_jaxpr(jax.vmap(f("auto")))(q, v).jaxpr)
-    n_unrolled = count_eqns(jax.make_jaxpr(jax.vmap(f("unrolled")))(q, v).jaxpr)
-    assert n_auto < n_unrolled
+    np.testing.assert_allclose(jax.jit(f("auto"))(q[0], v[0]), a_vec[0], rtol=1e-11, atol=1e-11)
+
+    def size(fn, *args):
+        return count_eqns(jax.make_jaxpr(fn)(*args).jaxpr)
+
+    # the batch and the single state both run the unrolled program
+    assert size(jax.vmap(f("auto")), q, v) >= size(jax.vmap(f("unrolled")), q, v) > 2 * size(jax.vmap(f("vectorised")), q, v)
+    assert size(f("auto"), q[0], v[0]) >= size(f("unrolled"), q[0], v[0]) > 2 * size(f("vectorised"), q[0], v[0])
     loss = lambda k: lambda q, v: jnp.sum(jnp.sin(f(k)(q, v)))
     g_auto = jax.vmap(jax.grad(loss("auto"), argnums=(0, 1)))(q[:8], v[:8])
     g_vec = jax.vmap(jax.grad(loss("vectorised"), argnums=(0, 1)))(q[:8], v[:8])
@@ -142,3 +147,30 @@ def test_auto_threshold_and_bad_kernel_name():
         kernels.acceleration(chain_model(2), jnp.zeros(2), jnp.zeros(2), kernel="fast")
     with pytest.raises(ValueError, match="scene: kernel must be one of"):
         jb.scene(chain_model(2), kernel="fast")
+
+
+def test_rk4_writes_its_stages_out_for_the_unrolled_kernel():
+    """``"rk4"`` on a scene that runs the unrolled kernel is :class:`RK4Stages` (stages written
+    out); it gives the tableau RK4's trajectory and dense output, batched and single."""
+    from test_scene import chain_model
+
+    from jaxbody import simulation
+
+    model = chain_model(3, axis=(0.3, -1.0, 0.2), damping=0.05)
+    auto, vec = jb.scene(model, kernel="auto"), jb.scene(model, kernel="vectorised")
+    pick = lambda sc: simulation._solver("rk4", sc, jnp.float64, 1e-8, 1e-8, 1e-3, None)[0].solver
+    assert type(pick(auto)) is simulation.RK4Stages
+    assert type(pick(vec)) is simulation.RK4
+    assert type(pick(jb.scene(chain_model(unrolled.MAX_BODIES + 2), kernel="auto"))) is simulation.RK4
+    q0, v0 = jnp.array([0.4, -0.3, 0.8]), jnp.array([1.0, 0.5, -2.0])
+    run = lambda sc, q, v: jb.simulate(sc, q, v, 0.2, solver="rk4", dt0=1e-3, n_save=5, dense=True)
+    s_a, s_v = run(auto, q0, v0), run(vec, q0, v0)
+    np.testing.assert_allclose(s_a.q, s_v.q, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(s_a.v, s_v.v, rtol=1e-12, atol=1e-12)
+    for t in (0.0123, 0.1337):
+        for x, y in zip(s_a.evaluate(t), s_v.evaluate(t)):
+            np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-12)
+    qb = q0 + 0.1 * jnp.arange(4.0)[:, None]
+    b_a = jax.vmap(lambda q: run(auto, q, v0).q)(qb)
+    b_v = jax.vmap(lambda q: run(vec, q, v0).q)(qb)
+    np.testing.assert_allclose(b_a, b_v, rtol=1e-12, atol=1e-12)
