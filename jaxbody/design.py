@@ -23,9 +23,12 @@ a torque in one joint turns only the two bodies it connects, and a torque at the
 turns the root body alone, the others keeping their absolute orientation.
 
 :func:`balance` adds a point counterweight to chosen bodies (mass and position within
-bounds, through a sigmoid parameterisation) and drives the required ``m̄_k`` to zero with
-optax (an augmented Lagrangian with L-BFGS inner solves for exact decoupling, or a
-quadratic penalty for a trade-off), while penalising added mass and added inertia.
+bounds, through a bounded ``(1 + sin z)/2`` parameterisation) and drives the required ``m̄_k``
+to zero with optax (an augmented Lagrangian with L-BFGS inner solves for exact decoupling,
+or a quadratic penalty for a trade-off), while penalising added mass and added inertia.
+Optionally (``extensions=``) each link is extended beyond its joint by a rod of bounded
+length with the counterweight at its end: the extension length replaces the free position
+as design variable, and the rod's own mass and inertia count as added.
 :func:`static_balance` is the closed-form answer: leaves first, a counterweight opposite
 each static moment at a given distance. Both return the balanced system with the
 counterweights folded into the bodies' mass, centre of mass and inertia, so every function
@@ -266,11 +269,18 @@ def fold_counterweights(system, bodies: Sequence[int], mass, position, gyration:
             f"counterweights: mass has shape {mu.shape} and position {p.shape}, expected "
             f"({len(idx)},) and ({len(idx)}, {_dim(system)}) for bodies {idx}"
         )
-    return _fold(system, idx, mu, p, float(gyration))
+    g2 = float(gyration) ** 2
+    if _is_planar(system):
+        extra = mu * g2
+    else:  # a homogeneous ball of radius of gyration g: (2/3) g² μ about each axis
+        extra = mu[:, None, None] * (2.0 / 3.0 * g2) * jnp.eye(3, dtype=p.dtype)
+    return _fold(system, idx, mu, p, extra)
 
 
 @eqx.filter_jit
-def _fold(system, bodies, mass, position, gyration):
+def _fold(system, bodies, mass, position, extra):
+    """Fold point masses ``mass`` at ``position`` plus their own central inertia ``extra``
+    (planar ``(n_cw,)``, spatial ``(n_cw, 3, 3)``) into ``bodies`` (repeats allowed)."""
     idx = np.asarray(bodies, dtype=np.int64)
     mu, p = mass, position
     if _is_planar(system):
@@ -279,19 +289,31 @@ def _fold(system, bodies, mass, position, gyration):
         J = system.body_inertia + m * jnp.sum(c * c, axis=-1)  # about the hinge
         m2 = m.at[idx].add(mu)
         h2 = (m[:, None] * c).at[idx].add(mu[:, None] * p)
-        J2 = J.at[idx].add(mu * (jnp.sum(p * p, axis=-1) + gyration**2))
+        J2 = J.at[idx].add(mu * jnp.sum(p * p, axis=-1) + extra)
         c2 = h2 / m2[:, None]
         I2 = J2 - m2 * jnp.sum(c2 * c2, axis=-1)
         return eqx.tree_at(lambda s: (s.body_mass, s.body_com, s.body_inertia), system, (m2, c2, I2))
     pi = _identify.parameters(system).reshape(system.n_body, 10)
     eye = jnp.eye(3, dtype=p.dtype)
-    Ip = mu[:, None, None] * ((jnp.sum(p * p, axis=-1)[:, None, None] + 2.0 / 3.0 * gyration**2) * eye
-                              - p[:, :, None] * p[:, None, :])
+    Ip = mu[:, None, None] * (jnp.sum(p * p, axis=-1)[:, None, None] * eye - p[:, :, None] * p[:, None, :]) + extra
     add = jnp.concatenate(
         [mu[:, None], mu[:, None] * p, jnp.stack([Ip[:, i, j] for i, j in _identify._SYM_IDX], axis=-1)], axis=-1
     )
     pi = pi.at[idx].add(add)
     return _identify.with_parameters(system, pi.reshape(-1))
+
+
+def _rod(system, direction, length, density):
+    """A straight uniform rod from the base point along ``direction`` (unit, ``(n, dim)``):
+    mass ``density · length``, centre at ``length/2 · direction``, central inertia
+    ``m ℓ²/12`` about the hinge axis (planar) or ``m ℓ²/12 (1 − d dᵀ)`` (spatial)."""
+    mass = density * length
+    centre = 0.5 * length[:, None] * direction
+    i_perp = mass * length**2 / 12.0
+    if _is_planar(system):
+        return mass, centre, i_perp
+    eye = jnp.eye(3, dtype=direction.dtype)
+    return mass, centre, i_perp[:, None, None] * (eye - direction[:, :, None] * direction[:, None, :])
 
 
 # ------------------------------------------------------------------------- coupling measure
@@ -389,6 +411,8 @@ class BalanceReport(NamedTuple):
         polished: the final closed-form step of :func:`balance` was applied.
         closed_form_added_mass: added mass of :func:`static_balance` on the same bodies with
             its default distances (for comparison; ``nan`` in the closed form itself).
+        extension_length: ``(n_cw,)`` lengths of the link extensions (``None`` without them);
+            ``added_mass`` then includes the extensions' own mass.
     """
 
     bodies: tuple
@@ -407,6 +431,7 @@ class BalanceReport(NamedTuple):
     history: np.ndarray
     closed_form_added_mass: float
     polished: bool = False
+    extension_length: np.ndarray | None = None
 
     def summary(self) -> str:
         lines = [
@@ -415,8 +440,11 @@ class BalanceReport(NamedTuple):
             + ("" if np.isnan(self.closed_form_added_mass) else
                f" (closed form, counterweights mirroring the links: {self.closed_form_added_mass:.6g})"),
         ]
-        for k, mu, p in zip(self.counterweight_bodies, self.counterweight_mass, self.counterweight_position):
-            lines.append(f"  body {k}: counterweight {mu:.6g} at {np.array2string(np.asarray(p), precision=5)}")
+        ext = self.extension_length
+        for i, (k, mu, p) in enumerate(zip(self.counterweight_bodies, self.counterweight_mass,
+                                           self.counterweight_position)):
+            lines.append(f"  body {k}: counterweight {mu:.6g} at {np.array2string(np.asarray(p), precision=5)}"
+                         + ("" if ext is None else f" (end of a {ext[i]:.5g} extension)"))
         lines.append(
             f"residual |m̄| (relative) {self.residual_static_moment:.3e}; coupling "
             f"{self.coupling_before:.3e} -> {self.residual_coupling:.3e}"
@@ -451,8 +479,9 @@ def _resolve_bodies(system, bodies, what):
     return tuple(sorted(set(out)))
 
 
-def _scale_length(system) -> np.ndarray:
-    """Per body: the farthest of its CM and its children's joints from its own base point."""
+def _reach(system) -> tuple[np.ndarray, np.ndarray]:
+    """Per body: its base point and the vector from it to the farthest of its CM and its
+    children's joints (the link's own reach), ``(n, dim)`` each."""
     n = system.n_body
     if _is_planar(system):
         com = np.asarray(system.body_com)
@@ -468,10 +497,52 @@ def _scale_length(system) -> np.ndarray:
         pos, quat = np.asarray(system.body_pos), np.asarray(system.body_quat)
         child_pts = [(system.tree.parent[j], pos[j] + np.asarray(quat_to_matrix(quat[j])) @ anchor[j])
                      for j in range(n) if system.tree.parent[j] >= 0]
-    L = np.linalg.norm(com - anchor, axis=1)
+    vec = com - anchor
     for k, pt in child_pts:
-        L[k] = max(L[k], float(np.linalg.norm(pt - anchor[k])))
+        if np.linalg.norm(pt - anchor[k]) > np.linalg.norm(vec[k]):
+            vec[k] = pt - anchor[k]
+    return anchor, vec
+
+
+def _scale_length(system) -> np.ndarray:
+    """Per body: the farthest of its CM and its children's joints from its own base point."""
+    L = np.linalg.norm(_reach(system)[1], axis=1)
     return np.where(L > 0, L, 1.0)
+
+
+def _extensions(system, cw, extensions, mbar0):
+    """Resolve the ``extensions`` option: length bounds ``(n_cw,)`` ×2, density ``(n_cw,)``
+    and unit directions ``(n_cw, dim)`` in body frames (``None`` when off)."""
+    if extensions is None or extensions is False:
+        return None
+    opts = {} if extensions is True else dict(extensions)
+    unknown = set(opts) - {"length", "density", "direction"}
+    if unknown:
+        raise ValueError(f"extensions: unknown keys {sorted(unknown)}; use 'length', 'density' and 'direction'")
+    c = np.asarray(cw, dtype=np.int64)
+    dim = _dim(system)
+    _, vec = _reach(system)
+    L = _scale_length(system)[c]
+    lo, hi = opts.get("length", (0.0, L))
+    lo = np.broadcast_to(np.asarray(lo, dtype=np.float64), (len(cw),)).copy()
+    hi = np.broadcast_to(np.asarray(hi, dtype=np.float64), (len(cw),)).copy()
+    if np.any(lo < 0) or np.any(hi <= lo):
+        raise ValueError(f"extensions: need 0 <= length lower < length upper, got ({lo.tolist()}, {hi.tolist()})")
+    rho = np.broadcast_to(np.asarray(opts.get("density", 0.0), dtype=np.float64), (len(cw),)).copy()
+    if np.any(rho < 0):
+        raise ValueError(f"extensions: density must be non-negative, got {rho.tolist()}")
+    if "direction" in opts:
+        d = np.broadcast_to(np.asarray(opts["direction"], dtype=np.float64), (len(cw), dim)).copy()
+    else:
+        # backwards along the link: opposite the reach; a body without reach: opposite m̄
+        d = -vec[c]
+        flat = np.linalg.norm(d, axis=1) == 0
+        d[flat] = -mbar0[c][flat]
+        d[np.linalg.norm(d, axis=1) == 0] = np.eye(dim)[0]
+    nrm = np.linalg.norm(d, axis=1)
+    if np.any(nrm == 0) or not np.all(np.isfinite(d)):
+        raise ValueError("extensions: every direction must be a finite non-zero vector")
+    return lo, hi, rho, d / nrm[:, None]
 
 
 def _bounds(system, cw, bounds):
@@ -521,26 +592,52 @@ class _Problem(eqx.Module):
     w_mass: Any
     w_inertia: Any
     gyration: float = eqx.field(static=True)
+    # link extensions (None when off): the second design variable is then the extension
+    # length in [plo, phi] (n_cw,), and the counterweight sits at anchor + length · direction
+    anchor: Any = None
+    direction: Any = None
+    density: Any = None
 
     def decode(self, x):
+        """Counterweight masses, positions and extension lengths (``None`` without)."""
         u, w = x
         # x = lo + (hi - lo)(1 + sin u)/2: bounded, and the bounds are reached at finite u
         # with a non-vanishing curvature (a sigmoid would flatten out towards them)
         mu = self.mlo + (self.mhi - self.mlo) * 0.5 * (1.0 + jnp.sin(u))
-        p = self.plo + (self.phi - self.plo) * 0.5 * (1.0 + jnp.sin(w))
-        return mu, p
+        y = self.plo + (self.phi - self.plo) * 0.5 * (1.0 + jnp.sin(w))
+        if self.direction is None:
+            return mu, y, None
+        return mu, self.anchor + y[:, None] * self.direction, y
 
     def folded(self, x):
-        mu, p = self.decode(x)
-        return fold_counterweights(self.system, self.cw, mu, p, self.gyration)
+        mu, p, e = self.decode(x)
+        if e is None:
+            return fold_counterweights(self.system, self.cw, mu, p, self.gyration)
+        return _fold_with_extensions(self.system, self.cw, mu, p, e, self.anchor, self.direction,
+                                     self.density, self.gyration)
+
+    def added_mass(self, x):
+        mu, _, e = self.decode(x)
+        return jnp.sum(mu) if e is None else jnp.sum(mu) + jnp.sum(self.density * e)
 
     def parts(self, x):
-        mu, _ = self.decode(x)
         s = self.folded(x)
         c = (static_moments(s)[np.asarray(self.req, dtype=np.int64)] / self.scale[:, None]).reshape(-1)
         dJ = jnp.sum(_inertia_measure(s)) - self.J0
-        f = self.w_mass * jnp.sum(mu) / self.m_total + self.w_inertia * dJ / self.J_total
+        f = self.w_mass * self.added_mass(x) / self.m_total + self.w_inertia * dJ / self.J_total
         return f, c
+
+
+def _fold_with_extensions(system, cw, mu, p, e, anchor, direction, density, gyration):
+    """Counterweights at the ends of the extensions, and the extension rods, folded in."""
+    rm, rc, ri = _rod(system, direction, e, density)
+    g2 = float(gyration) ** 2
+    if _is_planar(system):
+        extra = jnp.concatenate([mu * g2, ri])
+    else:
+        extra = jnp.concatenate([mu[:, None, None] * (2.0 / 3.0 * g2) * jnp.eye(3, dtype=p.dtype), ri])
+    return _fold(system, tuple(cw) + tuple(cw), jnp.concatenate([mu, rm]),
+                 jnp.concatenate([p, anchor + rc]), extra)
 
 
 def _minimise(fun, x0, steps, optimizer, learning_rate):
@@ -595,6 +692,7 @@ def balance(
     bounds: dict | None = None,
     penalty: dict | None = None,
     *,
+    extensions: dict | bool | None = None,
     exact: bool = True,
     coupling_weight: float = 1e3,
     optimizer: str = "lbfgs",
@@ -620,6 +718,21 @@ def balance(
             times the total mass, positions within the link's own reach around its joint.
         penalty: ``{"mass": w_m, "inertia": w_I}`` weights of the added mass (relative to the
             total mass) and the added augmented inertia (relative to the total); default 1, 1.
+        extensions: link extensions as design variables (``None``: off). ``True`` or
+            ``{"length": (lo, hi), "density": λ, "direction": d}``: each counterweight body's
+            link is extended beyond its joint by a straight uniform rod of length ``e`` in
+            ``[lo, hi]`` (default ``[0, L_k]``, ``L_k`` the link's own reach: the farthest of
+            its CM and its children's joints), of mass ``λ e`` per body (``density`` in mass per
+            length, default ``0``: a massless arm), along the unit direction ``d`` in the body
+            frame (default: backwards along the link, opposite the reach), and the
+            counterweight is clamped at the rod's end, ``p = anchor + e d``. The design
+            variables per body are then the counterweight mass and ``e``; the rod's mass,
+            static moment and inertia (``λ e³/3`` about the joint) are folded into the body
+            with the counterweight and count as added mass and inertia. A counterweight on
+            the link's line cancels only the static moment along it: for a link whose CM lies
+            off that line, give ``direction`` or use free positions. Excludes
+            ``bounds["position"]``. The link geometry that defines the mechanism (joint
+            positions ``hinge_pos``, the children's joints) is not changed.
         exact: enforce ``m̄_k = 0`` (augmented Lagrangian, ``outer`` multiplier updates of
             ``steps`` optimiser iterations each) or, with ``False``, penalise
             ``coupling_weight · |m̄ / scale|²`` (one solve; use it for trade-off curves).
@@ -651,13 +764,19 @@ def balance(
                 f"balance: body {k} ({_body_names(system)[k]!r}) must be balanced but carries no counterweight "
                 "on itself or below it"
             )
+    if optimizer not in ("lbfgs", "adam"):
+        raise ValueError(f"optimizer must be 'lbfgs' or 'adam', got {optimizer!r}")
     penalty = dict(penalty or {})
     unknown = set(penalty) - {"mass", "inertia"}
     if unknown:
         raise ValueError(f"penalty: unknown keys {sorted(unknown)}; use 'mass' and 'inertia'")
+    if extensions not in (None, False) and "position" in dict(bounds or {}):
+        raise ValueError("bounds: 'position' cannot be combined with extensions (the counterweight sits at the "
+                         "end of its extension; bound the extension length instead)")
     (mlo, mhi), (plo, phi) = _bounds(system, cw, bounds)
     dtype = system.body_mass.dtype
     mbar0 = np.asarray(static_moments(system), dtype=np.float64)
+    ext = _extensions(system, cw, extensions, mbar0)
     scale = float(np.max(np.linalg.norm(mbar0, axis=1)))
     scale = scale if scale > 0 else 1.0
     # each constraint m̄_k = 0 in units of its own size: subsystem mass times the body's reach
@@ -666,21 +785,30 @@ def balance(
     req_scale = np.where(req_scale > 0, req_scale, scale)
     J = np.asarray(_inertia_measure(system), dtype=np.float64)
     f = lambda a: jnp.asarray(a, dtype)
+    anchor = np.zeros((system.n_body, _dim(system))) if _is_planar(system) else _anchor(system)
+    cwi = np.asarray(cw, dtype=np.int64)
+    extra = {}
+    if ext is not None:
+        plo, phi = ext[0], ext[1]
+        extra = dict(anchor=f(anchor[cwi]), direction=f(ext[3]), density=f(ext[2]))
     problem = _Problem(
         system=system, cw=cw, req=req, mlo=f(mlo), mhi=f(mhi), plo=f(plo), phi=f(phi), scale=f(req_scale),
         m_total=f(np.sum(np.asarray(system.body_mass))), J_total=f(np.sum(J)), J0=f(np.sum(J)),
         w_mass=f(penalty.get("mass", 1.0)), w_inertia=f(penalty.get("inertia", 1.0)), gyration=float(gyration),
+        **extra,
     )
     # start: each counterweight opposite its body's static moment at half the link's reach,
     # with the mass that would cancel that moment alone (children's counterweights ignored)
-    anchor = np.zeros((system.n_body, _dim(system))) if _is_planar(system) else _anchor(system)
-    cwi = np.asarray(cw, dtype=np.int64)
     nrm = np.linalg.norm(mbar0[cwi], axis=1)
-    d = -mbar0[cwi] / np.maximum(nrm, 1e-300)[:, None]
     half = 0.5 * _scale_length(system)[cwi]
-    p0 = np.clip(anchor[cwi] + d * half[:, None], plo, phi)
+    if ext is None:
+        d = -mbar0[cwi] / np.maximum(nrm, 1e-300)[:, None]
+        y0 = np.clip(anchor[cwi] + d * half[:, None], plo, phi)
+    else:  # half-way along the extension's range
+        y0 = 0.5 * (plo + phi)
+        half = np.where(y0 > 0, y0, half)
     mu0 = np.clip(nrm / half, mlo, mhi)
-    x = (f(_bounded_inv((mu0 - mlo) / (mhi - mlo))), f(_bounded_inv((p0 - plo) / (phi - plo))))
+    x = (f(_bounded_inv((mu0 - mlo) / (mhi - mlo))), f(_bounded_inv((y0 - plo) / (phi - plo))))
     history = []
     it = 0
     if exact:
@@ -703,11 +831,24 @@ def balance(
             x, fv, c = _solve_penalty(problem, x, f(coupling_weight), steps * outer, optimizer, learning_rate)
         it = steps * outer
         history.append(float(fv))
-    mu, p = problem.decode(x)
+    mu, p, e = problem.decode(x)
+    added = float(problem.added_mass(x))
     out = problem.folded(x)
     mbar1 = np.asarray(static_moments(out), dtype=np.float64)
     polished = False
-    if exact and polish and set(cw) == set(req):
+    if exact and polish and set(cw) == set(req) and ext is not None:
+        # the same final step with the extension lengths kept: leaves first, the mass at the
+        # end of each extension that zeroes the static moment along it
+        res = float(np.max(np.linalg.norm(mbar1[list(req)], axis=1) / req_scale))
+        if res > 0:
+            cand = _polish_extensions(problem, np.asarray(e), np.asarray(mlo), np.asarray(mhi))
+            if cand is not None:
+                mu_c, s_c = cand
+                mb_c = np.asarray(static_moments(s_c), dtype=np.float64)
+                if float(np.max(np.linalg.norm(mb_c[list(req)], axis=1) / req_scale)) < res:
+                    mu, out, mbar1, polished = jnp.asarray(mu_c), s_c, mb_c, True
+                    added = float(np.sum(mu_c) + np.sum(ext[2] * np.asarray(e)))
+    elif exact and polish and set(cw) == set(req):
         # Final exact step: keep the distance of every counterweight from its joint that the
         # optimiser chose and solve, leaves first, for the direction and mass that zero m̄_k
         # (the closed form of static_balance); it moves the design by the order of the
@@ -729,12 +870,14 @@ def balance(
             cf_mass = static_balance(system, bodies=req)[1].added_mass
         except ValueError:
             pass
+    if ext is None:
+        added = float(jnp.sum(mu))
     report = BalanceReport(
         bodies=req,
         counterweight_bodies=cw,
         counterweight_mass=np.asarray(mu, dtype=np.float64),
         counterweight_position=np.asarray(p, dtype=np.float64),
-        added_mass=float(jnp.sum(mu)),
+        added_mass=added,
         added_inertia=float(np.sum(np.asarray(_inertia_measure(out))) - np.sum(J)),
         static_moment_before=mbar0,
         static_moment_after=mbar1,
@@ -746,8 +889,38 @@ def balance(
         history=np.asarray(history),
         closed_form_added_mass=cf_mass,
         polished=polished,
+        extension_length=None if e is None else np.asarray(e, dtype=np.float64),
     )
     return out, report
+
+
+def _polish_extensions(problem, e, mlo, mhi):
+    """Closed-form counterweight masses at fixed extension lengths ``e`` (leaves first):
+    ``μ_k = -(m̄_k · d_k) / e_k`` with the rods and the descendants' counterweights already
+    folded in. ``None`` when a length is zero or a mass leaves its bounds."""
+    if np.any(e <= 0):
+        return None
+    dtype = problem.system.body_mass.dtype
+    cw = problem.cw
+    d = np.asarray(problem.direction)
+    anchor = np.asarray(problem.anchor)
+    zeros = jnp.zeros(len(cw), dtype)
+    cur = _fold_with_extensions(problem.system, cw, zeros, problem.anchor, jnp.asarray(e, dtype), problem.anchor,
+                                problem.direction, problem.density, 0.0)  # the rods alone
+    mu = np.zeros(len(cw))
+    for i in sorted(range(len(cw)), key=lambda i: cw[i], reverse=True):
+        mb = np.asarray(static_moments(cur), dtype=np.float64)[cw[i]]
+        mu[i] = -float(mb @ d[i]) / e[i]
+        if not (mlo[i] - 1e-12 * (1.0 + mhi[i]) <= mu[i] <= mhi[i]):
+            return None
+        mu[i] = max(mu[i], 0.0)
+        cur = _fold(cur, (cw[i],), jnp.asarray([mu[i]], dtype), jnp.asarray((anchor[i] + e[i] * d[i])[None], dtype),
+                    jnp.zeros((1,) if _is_planar(cur) else (1, 3, 3), dtype))
+    if problem.gyration:
+        cur = _fold_with_extensions(problem.system, cw, jnp.asarray(mu, dtype), problem.anchor
+                                    + jnp.asarray(e, dtype)[:, None] * problem.direction, jnp.asarray(e, dtype),
+                                    problem.anchor, problem.direction, problem.density, problem.gyration)
+    return mu, cur
 
 
 def static_balance(system, bodies: Sequence[int | str] | str | None = None, radius=None, n_samples: int = 32,

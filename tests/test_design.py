@@ -197,3 +197,128 @@ def test_closed_form_decouples_panda_and_cli_reads_mjcf(models_dir, capsys):
         assert design.cli_balance([str(models_dir / "panda.xml")]) == 0
     text = capsys.readouterr().out
     assert "link4" in text and "proposed design" in text and "nan" not in text
+
+
+# ------------------------------------------------------------------ link extensions
+# 3-link arm data (spec eq. 14): hand m̄_3 = 0.8 · 0.15 = 0.12 along the link; the forearm's
+# reach is L_2 = 0.5, the hand's 0.15; carriers of the hand at distances 0.5 (forearm) and 0.7.
+def test_extensions_put_counterweights_beyond_the_links_reach():
+    s = _arm()
+    L = np.array([0.5, 0.15])
+    out, rep = design.balance(s, penalty={"mass": 1.0, "inertia": 0.0}, extensions={"length": (0.0, 2.0 * L)})
+    # massless extensions, mass penalised only: each extension runs to its bound, counterweight at
+    # its end, backwards along the link; by hand, leaves first: μ_3 = 0.12 / 0.3 = 0.4 and
+    # μ_2 = (1.5 · 0.25 + (0.8 + 0.4) · 0.5) / 1.0 = 0.975
+    np.testing.assert_allclose(rep.extension_length, 2.0 * L, rtol=1e-9)
+    np.testing.assert_allclose(rep.counterweight_mass, [0.975, 0.4], rtol=1e-9)
+    np.testing.assert_allclose(rep.counterweight_position, [[-1.0, 0.0], [-0.3, 0.0]], atol=1e-9)
+    np.testing.assert_allclose(rep.added_mass, 1.375, rtol=1e-9)
+    # the same decoupling as without extensions, for less than half the added mass
+    assert rep.added_mass < 0.5 * rep.closed_form_added_mass  # 3.15: counterweights mirroring the links
+    Ms = np.asarray(jax.vmap(jb.planar.mass_matrix, in_axes=(None, 0))(out, jnp.asarray(_configs(64, 3))))
+    assert _offdiag_ratio(Ms) <= 1e-10
+    # the mechanism's joints are untouched
+    np.testing.assert_array_equal(np.asarray(out.hinge_pos), np.asarray(s.hinge_pos))
+    jb.planar.validate(out)
+
+
+def test_extension_rod_mass_gives_an_interior_optimum_and_bounds_hold():
+    s = _arm()
+    m3 = 0.12
+    lam = 0.5  # kg/m: the extension's own mass counts
+    # counterweight μ at the end of a rod of length e: μ e + λ e²/2 = m̄ and the added mass
+    # μ + λ e = m̄/e + λ e/2 is least at e* = sqrt(2 m̄/λ), where the rod alone balances (μ = 0)
+    out, rep = design.balance(s, bodies=["hand"], penalty={"mass": 1.0, "inertia": 0.0},
+                              extensions={"length": (0.0, 2.0), "density": lam})
+    e_star = np.sqrt(2.0 * m3 / lam)
+    np.testing.assert_allclose(rep.extension_length, [e_star], rtol=1e-6)
+    np.testing.assert_allclose(rep.added_mass, np.sqrt(2.0 * m3 * lam), rtol=1e-6)
+    assert rep.counterweight_mass[0] < 1e-6
+    assert np.linalg.norm(design.static_moments(out)[2]) < 1e-12
+    # a shorter bound is respected: e = 0.4 and μ = m̄/e − λe/2 = 0.2
+    out, rep = design.balance(s, bodies=["hand"], penalty={"mass": 1.0, "inertia": 0.0},
+                              extensions={"length": (0.0, 0.4), "density": lam})
+    np.testing.assert_allclose(rep.extension_length, [0.4], rtol=1e-9)
+    np.testing.assert_allclose(rep.counterweight_mass, [0.2], rtol=1e-9)
+    np.testing.assert_allclose(rep.added_mass, 0.4, rtol=1e-9)
+    # the rod's inertia λe³/3 and the counterweight's μe² about the hand's joint
+    J = lambda x: float(x.body_inertia[2] + x.body_mass[2] * np.sum(np.asarray(x.body_com[2]) ** 2))
+    np.testing.assert_allclose(J(out) - J(s), lam * 0.4**3 / 3 + 0.2 * 0.4**2, rtol=1e-9)
+    Ms = np.asarray(jax.vmap(jb.planar.mass_matrix, in_axes=(None, 0))(out, jnp.asarray(_configs(16, 3))))
+    assert np.abs(Ms[:, 2, :2]).max() <= 1e-10 * np.abs(Ms).max()
+    with pytest.raises(ValueError, match="'position' cannot be combined with extensions"):
+        design.balance(s, bounds={"position": (-1.0, 1.0)}, extensions=True)
+    with pytest.raises(ValueError, match=r"extensions: unknown keys \['width'\]"):
+        design.balance(s, extensions={"width": 1.0})
+
+
+# ------------------------------------------------------------------ options
+def test_explicit_bounds_are_respected():
+    # box |x| <= 0.3, |y| <= 0.1 and masses up to 4: the counterweights go to x = -0.3, and
+    # leaves first μ_3 = 0.12 / 0.3 = 0.4, μ_2 = (0.375 + 1.2 · 0.5) / 0.3 = 3.25
+    lo, hi = np.array([-0.3, -0.1]), np.array([0.3, 0.1])
+    out, rep = design.balance(_arm(), bounds={"mass": (0.0, 4.0), "position": (lo, hi)},
+                              penalty={"mass": 1.0, "inertia": 0.0})
+    p = rep.counterweight_position
+    assert np.all(p >= lo - 1e-12) and np.all(p <= hi + 1e-12) and np.all(rep.counterweight_mass <= 4.0)
+    np.testing.assert_allclose(p, [[-0.3, 0.0], [-0.3, 0.0]], atol=1e-9)
+    np.testing.assert_allclose(rep.counterweight_mass, [3.25, 0.4], rtol=1e-9)
+    assert rep.residual_coupling <= 1e-10
+
+
+def test_inertia_penalty_pulls_the_counterweight_in():
+    # hand only, wide box: added inertia m̄ρ (hand) + (m̄/ρ)(0.5² + 0.7²) (its carriers) is least
+    # at ρ = sqrt(0.74); the mass penalty alone drives ρ to the box edge (2)
+    s, box = _arm(), {"position": ([-2.0, -2.0], [2.0, 2.0])}
+    _, rep_i = design.balance(s, bodies=["hand"], bounds=box, penalty={"mass": 0.0, "inertia": 1.0})
+    _, rep_m = design.balance(s, bodies=["hand"], bounds=box, penalty={"mass": 1.0, "inertia": 0.0})
+    np.testing.assert_allclose(rep_i.counterweight_position, [[-np.sqrt(0.74), 0.0]], rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(rep_m.counterweight_position, [[-2.0, 0.0]], atol=1e-9)
+    np.testing.assert_allclose(rep_i.added_inertia, 2.0 * 0.12 * np.sqrt(0.74), rtol=1e-6)
+    assert rep_i.added_inertia < rep_m.added_inertia and rep_i.added_mass > rep_m.added_mass
+
+
+def test_balance_with_adam():
+    s = _arm()
+    # the optimiser alone (no closed-form polish) drives the hand's m̄ to ~1e-9 ...
+    _, rep = design.balance(s, bodies=["hand"], optimizer="adam", learning_rate=0.05, polish=False)
+    assert not rep.polished and rep.residual_static_moment < 1e-6
+    # ... at more added mass than the optimum on the default box (0.12 / 0.15 = 0.8): Adam
+    # stalls on the constraint surface short of the box edge
+    assert 0.8 - 1e-9 <= rep.added_mass < 2.0
+    out, rep = design.balance(s, bodies=["hand"], optimizer="adam", learning_rate=0.05)
+    assert rep.polished
+    Ms = np.asarray(jax.vmap(jb.planar.mass_matrix, in_axes=(None, 0))(out, jnp.asarray(_configs(16, 3))))
+    assert np.abs(Ms[:, 2, :2]).max() <= 1e-10 * np.abs(Ms).max()
+    with pytest.raises(ValueError, match="optimizer"):
+        design.balance(s, optimizer="sgd")
+
+
+def test_required_bodies_with_a_free_floating_root():
+    b = jb.ModelBuilder(gravity=(0.0, 0.0, -9.81), name="floating")
+    b.add_body("torso", mass=3.0, com=(0.0, 0.05, 0.2), inertia=(0.05, 0.06, 0.03), joints=[jb.Free()])
+    b.add_body("left", parent="torso", pos=(0.15, 0.0, 0.4), mass=1.0, com=(0.1, 0.02, -0.15),
+               inertia=(0.01, 0.012, 0.004), joints=[jb.Ball()])
+    b.add_body("welded", parent="torso", pos=(-0.15, 0.0, 0.4), mass=1.2, com=(-0.05, 0.0, -0.2),
+               inertia=(0.012, 0.012, 0.004))
+    b.add_body("hand", parent="left", pos=(0.05, 0.0, -0.3), mass=0.4, com=(0.0, 0.03, -0.08),
+               inertia=(0.002, 0.002, 0.001), joints=[jb.Hinge(axis=(0.0, 1.0, 0.0))])
+    model = b.build()
+    # on a moving base every jointed body must be balanced, the floating root included; a body
+    # welded to its parent has no angle of its own
+    assert design.required_bodies(model) == (0, 1, 3)
+    # the same tree on a fixed ball joint: the root turns about the fixed ground, not required
+    assert design.required_bodies(_ball_tree()) == (1, 2, 3)
+
+
+def test_cli_balance_optimise(capsys):
+    from jaxbody.cli import main
+
+    assert main(["balance", "three_link_manipulator", "--optimise", "--penalty-inertia", "0"]) == 0
+    out = capsys.readouterr().out
+    assert "proposed design (closed form" in out and "optimised design (optax" in out
+    opt = out.split("optimised design")[1]
+    # mass penalised only on the default box: the optimum is the closed form (3.15)
+    assert "added mass 3.15," in opt and "coupling 7.747e-01 ->" in opt
+    coupling_after = float(opt.split("-> ")[1].split()[0])
+    assert coupling_after <= 1e-10
