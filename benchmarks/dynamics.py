@@ -760,7 +760,7 @@ def parse_args(argv=None):
     p.add_argument("--repeats", type=int, help="timing repeats, median reported (default 5, quick 3)")
     p.add_argument("--timeout", type=float, help="seconds per worker process (default 300, quick 180)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--models-dir", type=pathlib.Path, default=_common.REPO.parent / "shared" / "models")
+    p.add_argument("--models-dir", type=pathlib.Path, default=_common.REPO / "jaxbody" / "models")
     p.add_argument("--out", type=pathlib.Path, default=_common.RESULTS, help="results folder")
     p.add_argument("--name", help="results file stem (default dynamics; dynamics_quick with --quick, "
                                   "so a harness check never overwrites the record)")

@@ -97,7 +97,7 @@ def main():
     ap.add_argument("--batch", type=int, default=1024)
     ap.add_argument("--min-time", type=float, default=0.5)
     ap.add_argument("--tag", default="", help="suffix of the result files (effects_<tag>.*)")
-    ap.add_argument("--models-dir", type=pathlib.Path, default=_common.REPO.parent / "shared" / "models")
+    ap.add_argument("--models-dir", type=pathlib.Path, default=_common.REPO / "jaxbody" / "models")
     args = ap.parse_args()
     st = _common.stamp()
 

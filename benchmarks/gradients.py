@@ -266,7 +266,7 @@ def parse_args(argv=None):
     p.add_argument("--timeout", type=float, default=900.0, help="seconds per worker")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--note", default="")
-    p.add_argument("--models-dir", type=pathlib.Path, default=_common.REPO.parent / "shared" / "models")
+    p.add_argument("--models-dir", type=pathlib.Path, default=_common.REPO / "jaxbody" / "models")
     p.add_argument("--out", type=pathlib.Path, default=_common.RESULTS)
     p.add_argument("--name", default="gradients")
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)

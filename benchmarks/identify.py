@@ -43,7 +43,7 @@ def main(argv=None):
     rows, record = [], {"stamp": st, "panda": {}, "fits": []}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        panda = jb.from_mjcf(REPO.parent / "shared" / "models" / "panda.xml")
+        panda = jb.from_mjcf(REPO / "jaxbody" / "models" / "panda.xml")
     t0 = time.perf_counter()
     base = idf.base_parameters(panda, n_samples=64, seed=1)
     t_base = time.perf_counter() - t0

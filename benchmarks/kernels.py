@@ -123,7 +123,7 @@ def main(argv=None):
     p.add_argument("--min-time", type=float, default=0.5)
     p.add_argument("--simulate-models", default="panda",
                    help="models also timed through a vmapped jb.simulate, rk4 preset vs tableau RK4")
-    p.add_argument("--models-dir", type=pathlib.Path, default=_common.REPO.parent / "shared" / "models")
+    p.add_argument("--models-dir", type=pathlib.Path, default=_common.REPO / "jaxbody" / "models")
     p.add_argument("--out", type=pathlib.Path, default=_common.RESULTS)
     p.add_argument("--name", default="kernels")
     args = p.parse_args(argv)

@@ -1,6 +1,6 @@
 """How closely does jaxbody agree with MuJoCo? Worst relative error per function (float64).
 
-Models: the shared robots (panda, ur5e, anymal_c) and seeded random MJCF trees that mix
+Models: the shipped robots (jaxbody/models: panda, ur5e, anymal_c) and seeded random MJCF trees that mix
 free, ball, hinge and slide joints, several joints per body, offset anchors, rotated
 inertial frames and mass ratios up to 1e4 (``tests/mjcf_random.py``). For each model and
 random state (quaternions normalised) it compares with MuJoCo on the same MJCF:
@@ -46,8 +46,8 @@ def main(argv=None):
     import jaxbody as jb
     from mjcf_random import random_mjcf
 
-    shared = REPO.parent / "shared" / "models"
-    sources = [(n, (shared / f"{n}.xml").read_text()) for n in ("panda", "ur5e", "anymal_c")]
+    shipped = REPO / "jaxbody" / "models"
+    sources = [(n, (shipped / f"{n}.xml").read_text()) for n in ("panda", "ur5e", "anymal_c")]
     sources += [(f"random{s}", random_mjcf(s, n_body=8, rigid_only=True)) for s in range(args.random)]
     rigid = (
         mujoco.mjtDisableBit.mjDSBL_CONSTRAINT

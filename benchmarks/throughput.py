@@ -654,7 +654,7 @@ def parse_args(argv=None):
     p.add_argument("--mjx-timeout", type=float, default=300.0, help="seconds per MJX worker (one batch)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--note", default="", help="free text written into the record (e.g. machine load)")
-    p.add_argument("--models-dir", type=pathlib.Path, default=_common.REPO.parent / "shared" / "models")
+    p.add_argument("--models-dir", type=pathlib.Path, default=_common.REPO / "jaxbody" / "models")
     p.add_argument("--out", type=pathlib.Path, default=_common.RESULTS)
     p.add_argument("--name", default="throughput", help="results file stem")
     p.add_argument("--worker", choices=("mujoco", "jaxbody", "mjx"), help=argparse.SUPPRESS)
