@@ -397,12 +397,28 @@ class Solution(eqx.Module):
             np.savez(fh, **arrays)
 
     def to_csv(self, path) -> None:
-        """Write ``t``, the coordinates, velocities, energy and work as CSV columns (one row per time)."""
+        """Write ``t``, the coordinates, velocities, energy and work as CSV columns (one row per time).
+
+        The header names the columns as ``jaxbody simulate --csv`` does: ``t``, then ``q:<joint>``
+        for each coordinate and ``v:<joint>`` for each velocity in the MuJoCo ``qpos``/``qvel``
+        layout (a ball or free joint's entries as ``q:<joint>.qw`` ... and ``v:<joint>.wx`` ...;
+        ``q:q0``, ``v:v0`` ... for systems without joint names), then ``energy`` and ``work_<effect>``.
+        """
         lay = self._layout_dict()
-        qn = lay.get("q_names") or [f"q{i}" for i in range(self.q.shape[-1])]
-        vn = lay.get("v_names") or [f"v{i}" for i in range(self.v.shape[-1])]
+        nq, nv = self.q.shape[-1], self.v.shape[-1]
+        if "joint_names" in lay and "joint_kinds" in lay:
+            q_parts = {"ball": ("qw", "qx", "qy", "qz"), "free": ("x", "y", "z", "qw", "qx", "qy", "qz")}
+            v_parts = {"ball": ("wx", "wy", "wz"), "free": ("vx", "vy", "vz", "wx", "wy", "wz")}
+            qn, vn = [], []
+            for name, kind in zip(lay["joint_names"], lay["joint_kinds"]):
+                qn += [f"{name}.{c}" for c in q_parts[kind]] if kind in q_parts else [name]
+                vn += [f"{name}.{c}" for c in v_parts[kind]] if kind in v_parts else [name]
+        else:
+            qn, vn = [], []
+        if len(qn) != nq or len(vn) != nv:
+            qn, vn = [f"q{i}" for i in range(nq)], [f"v{i}" for i in range(nv)]
         cols = [np.asarray(self.t)[:, None], np.asarray(self.q), np.asarray(self.v)]
-        names = ["t", *qn, *vn]
+        names = ["t", *(f"q:{n}" for n in qn), *(f"v:{n}" for n in vn)]
         if self.energy is not None:
             cols.append(np.asarray(self.energy)[:, None])
             names.append("energy")
