@@ -115,6 +115,73 @@ def test_loop_reaction_gradient_wrt_link_mass_through_the_solve(four_bar_scene):
     np.testing.assert_allclose(g, fd, rtol=1e-5)
 
 
+@pytest.mark.slow  # ~2-5 min: reverse mode through the checkpointed solve of the spatial four-bar
+def test_loop_reaction_gradient_wrt_link_mass_reverse_mode():
+    """The same gradient with the default (checkpointed) adjoint: ``jax.grad`` through the
+    PartitionSolver, whose partition lives in the solver state, vs central differences."""
+    cs = four_bar()
+    sc = jb.scene(cs.base.model, constraints=cs)
+    q0, v0 = four_bar_state(0.6, 2.0)
+    kw = dict(n_save=11, rtol=1e-10, atol=1e-10)  # adjoint: the default
+
+    def final_reaction(m):
+        s = eqx.tree_at(lambda s: s.system.body_mass, sc, sc.system.body_mass.at[1].set(m))
+        return jb.simulate(s, q0, v0, 0.3, **kw).reactions[-1, 0]
+
+    m, h = 1.2, 1e-3
+    g = float(jax.grad(final_reaction)(m))
+    fd = (float(final_reaction(m + h)) - float(final_reaction(m - h))) / (2 * h)
+    assert abs(g) > 1e-2
+    np.testing.assert_allclose(g, fd, rtol=1e-5)  # measured: 4e-7
+
+
+class PointMass(maggi.QuasiVelocitySystem):
+    """A particle in a vertical plane, Cartesian coordinates = quasi-velocities."""
+
+    mass: jax.Array
+    nq = 2
+    nv = 2
+
+    def kinetic_energy_rates(self, q, qd):
+        return 0.5 * self.mass * qd @ qd
+
+    def potential_energy(self, q):
+        return self.mass * 9.81 * q[1]
+
+    def qdot(self, q, x):
+        return x
+
+    def quasi_velocities(self, q, qd):
+        return qd
+
+
+def test_reverse_mode_gradient_through_repartitioning_solve():
+    """``jax.grad`` with the default checkpointed adjoint through a constrained solve whose
+    coordinate partition changes on the way (a Cartesian pendulum swinging past the
+    horizontal: the free velocity switches from x to y), vs central differences."""
+    L, th0 = 1.3, 0.3
+    rod = maggi.VelocityConstraint(lambda b, t, q, x: (q @ x)[None] / L, size=1, label="rod",
+                                   position=lambda b, t, q: ((q @ q - L**2) / (2 * L))[None])
+    q0 = jnp.array([L * np.sin(th0), -L * np.cos(th0)])
+    cs = maggi.constrain(PointMass(jnp.asarray(0.7)), [rod], q_ref=q0)
+    assert cs.partitioned
+
+    def run(w):
+        return jb.simulate(cs, q0, w * jnp.array([np.cos(th0), np.sin(th0)]), 1.0, n_save=2, rtol=1e-10, atol=1e-10)
+
+    sol = run(jnp.asarray(5.0))
+    assert int(sol.stats["num_repartitions"]) >= 1  # the partition in the solver state changed
+    # the reaction is the rod force along q/L: λ = −m v²/L + m g y/L (radial Newton's law)
+    q, v = np.asarray(sol.q[-1]), np.asarray(sol.v[-1])
+    np.testing.assert_allclose(sol.reactions[-1, 0], 0.7 * (-(v @ v) + 9.81 * q[1]) / L, rtol=1e-7)
+    f = lambda w: run(w).reactions[-1, 0]
+    g = float(jax.grad(f)(5.0))
+    h = 1e-4
+    fd = (float(f(5.0 + h)) - float(f(5.0 - h))) / (2 * h)
+    assert abs(g) > 1.0
+    np.testing.assert_allclose(g, fd, rtol=1e-6)  # measured: 1e-9
+
+
 def test_example5_point_on_line_is_redundant_in_the_plane(ex5):
     """Example 5 (simulated through the slot in test_scene) written as a point on the vertical
     line: of its two rows, the one normal to the plane of motion is satisfied by the hinges

@@ -128,8 +128,13 @@ def four_bar_rates(th, w1):
     return np.array([w1, *w23])
 
 
-def four_bar_newton_euler(th, w):
-    """Planar Newton–Euler with pin forces: unknowns (α1, α2, α3, F01, F12, FL, F03)."""
+def four_bar_newton_euler(th, w, crank_acceleration=None):
+    """Planar Newton–Euler with pin forces: unknowns (α1, α2, α3, F01, F12, FL, F03).
+
+    With ``crank_acceleration`` the crank is driven: α1 is given and the drive torque τ on
+    the crank (about the hinge axis) is a twelfth unknown, returned last."""
+    driven = crank_acceleration is not None
+    n_unknown = 12 if driven else 11
     cross = lambda r, f: r[0] * f[1] - r[1] * f[0]
     g = np.array([0.0, -G])
 
@@ -146,14 +151,15 @@ def four_bar_newton_euler(th, w):
             MASS[0] * ac1 - (F01 - F12 + MASS[0] * g),
             MASS[1] * ac2 - (F12 + FL + MASS[1] * g),
             MASS[2] * ac3 - (F03 - FL + MASS[2] * g),
-            [INER[0] * al[0] - (cross(-0.5 * L1 * e[0], F01) + cross(0.5 * L1 * e[0], -F12))],
+            [INER[0] * al[0] - (cross(-0.5 * L1 * e[0], F01) + cross(0.5 * L1 * e[0], -F12) + (z[11] if driven else 0.0))],
             [INER[1] * al[1] - (cross(-0.5 * L2 * e[1], F12) + cross(0.5 * L2 * e[1], FL))],
             [INER[2] * al[2] - (cross(-0.5 * L3 * e[2], F03) + cross(0.5 * L3 * e[2], -FL))],
             aC2 - aC3,
+            [al[0] - crank_acceleration] if driven else [],
         ])
 
-    r0 = residual(np.zeros(11))
-    Amat = np.stack([residual(np.eye(11)[i]) - r0 for i in range(11)], axis=1)
+    r0 = residual(np.zeros(n_unknown))
+    Amat = np.stack([residual(np.eye(n_unknown)[i]) - r0 for i in range(n_unknown)], axis=1)
     return np.linalg.solve(Amat, -r0)
 
 
@@ -226,9 +232,19 @@ def test_prescribed_crank_drives_the_four_bar():
     v0 = jnp.array([w[0], w[1] - w[0], w[2]])
     sol = jb.simulate(driven, q0, v0, 1.0, rtol=1e-10, atol=1e-10, n_save=5)
     np.testing.assert_allclose(sol.q[:, 0], 0.6 + 2.0 * sol.t, atol=1e-8)
-    # at constant crank rate, the drive torque equals the crank row of the Newton-Euler balance
     th1 = four_bar_angles(float(sol.q[-1, 0]))
     np.testing.assert_allclose(sol.q[-1], [th1[0], th1[1] - th1[0], th1[2]], atol=1e-7)
+    # at constant crank rate, the drive torque is the crank row of the Newton–Euler balance with
+    # α1 = 0 and the torque as unknown; the loop rows stay the pin force on the coupler
+    assert sol.reactions.shape == (5, 3) and driven.constraint_names[2] == "prescribed 'crank_hinge0'"
+    torques = []
+    for q, v, lam in zip(np.asarray(sol.q), np.asarray(sol.v), np.asarray(sol.reactions)):
+        th = np.array([q[0], q[0] + q[1], q[2]])
+        w = np.array([v[0], v[0] + v[1], v[2]])
+        ref = four_bar_newton_euler(th, w, crank_acceleration=0.0)
+        np.testing.assert_allclose(lam, [ref[7], ref[8], ref[11]], rtol=1e-7, atol=1e-7)
+        torques.append(ref[11])
+    assert np.ptp(torques) > 0.1  # the torque varies along the run: a real comparison
 
 
 def test_initial_velocity_errors_and_projection():
@@ -291,6 +307,66 @@ def test_rolling_wheel_on_a_free_body_matches_the_disk_example():
         vc = lambda qq, xx: jax.jvp(base.centre, (qq,), (base.qdot(qq, xx),))[1]
         a_ref = jax.jvp(vc, (qd, xd), (base.qdot(qd, xd), rd.xdot))[1]
         np.testing.assert_allclose(rf.xdot[:3], a_ref, rtol=1e-9, atol=1e-10)
+
+
+def _skew(w):
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def test_point_on_line_on_a_free_body_against_newton_euler():
+    """A free rigid body (6 DoF) with one of its points on a skew line through space: both
+    rows of PointOnLine act (4 DoF left, not redundant). Accelerations and the two reaction
+    components against the world-frame Newton–Euler equations with the force across the line
+    as unknown: m a_c = m g + F, I α + ω × Iω = r × F, n_k·(a_c + α × r + ω × (ω × r)) = 0."""
+    m, Ib = 1.7, np.diag([0.05, 0.08, 0.11])
+    g = np.array([0.0, 0.0, -9.81])
+    b = jb.ModelBuilder(gravity=tuple(g))
+    b.add_body("body", mass=m, inertia=tuple(np.diag(Ib)), joints=[jb.Free()])
+    model = b.build()
+    p_b = np.array([0.3, -0.1, 0.2])  # the constrained point, body frame (the c.o.m. is the origin)
+    d = np.array([1.0, 2.0, -0.5]) / np.linalg.norm([1.0, 2.0, -0.5])
+    line = jc.PointOnLine(model, "body", p_b, direction=d, origin=(0.2, -0.4, 0.9))
+    n = np.asarray(line.normals)
+    np.testing.assert_allclose(n @ d, 0.0, atol=1e-15)
+    np.testing.assert_allclose(n @ n.T, np.eye(2), atol=1e-15)
+    rng = np.random.default_rng(11)
+
+    def state():
+        R = Rotation.random(random_state=rng).as_matrix()
+        r = R @ p_b
+        c = np.array([0.2, -0.4, 0.9]) + rng.normal() * d - r  # the point on the line
+        w = rng.normal(size=3) * 2  # world angular velocity
+        vc = rng.normal(size=3)
+        vc = vc - n.T @ (n @ (vc + np.cross(w, r)))  # the point moves along the line only
+        quat = Rotation.from_matrix(R).as_quat()
+        return R, r, c, w, vc, jnp.asarray(np.concatenate([c, [quat[3]], quat[:3]])), jnp.asarray(np.concatenate([vc, R.T @ w]))
+
+    *_, q_ref, _ = state()
+    s = maggi.constrain(model, [line], q_ref=q_ref)
+    assert s.n_constraint == 2 and s.constraint_names == (f"{line.label}[n1]", f"{line.label}[n2]")
+    for _ in range(3):
+        R, r, c, w, vc, q, v = state()
+        np.testing.assert_allclose(s.position_residual(0.0, q), 0.0, atol=1e-12)
+        np.testing.assert_allclose(s.constraint_residual(0.0, q, v), 0.0, atol=1e-12)
+        sol = s.solve(0.0, q, v)
+        Iw = R @ Ib @ R.T
+        # unknowns z = (a_c, α, f1, f2), F = f1 n1 + f2 n2
+        A = np.zeros((8, 8))
+        rhs = np.zeros(8)
+        A[0:3, 0:3] = m * np.eye(3)
+        A[0:3, 6:8] = -n.T
+        rhs[0:3] = m * g
+        A[3:6, 3:6] = Iw
+        A[3:6, 6:8] = -_skew(r) @ n.T
+        rhs[3:6] = -np.cross(w, Iw @ w)
+        A[6:8, 0:3] = n
+        A[6:8, 3:6] = -n @ _skew(r)  # α × r = −r × α
+        rhs[6:8] = -n @ np.cross(w, np.cross(w, r))
+        z = np.linalg.solve(A, rhs)
+        np.testing.assert_allclose(sol.reactions, z[6:8], rtol=1e-10, atol=1e-10)
+        # free joint: v̇ = (a_c, d/dt(Rᵀω) = Rᵀα)
+        np.testing.assert_allclose(sol.xdot, np.concatenate([z[:3], R.T @ z[3:6]]), rtol=1e-10, atol=1e-10)
+        assert abs(z[6]) + abs(z[7]) > 1.0  # both rows carry force
 
 
 def free_state(base, q, x):
