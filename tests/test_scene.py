@@ -57,8 +57,10 @@ def panda(models_dir):
 def test_trace_shrinks_as_each_effect_is_removed(panda, kernel):
     """Both forward-dynamics kernels: each removed effect removes equations from the program.
 
-    Body loads need the scene's shared kinematics (their power enters the energy balance),
-    so a scene with loads runs the vectorised kernel whatever ``kernel`` says; the unrolled
+    The removed effects, in order: a Maggi constraint (end effector on a plane), the prescribed
+    support motion, body loads, actuation, dampers, springs, gravity. Constraints, support motion
+    and body loads need the scene's shared kinematics (their power enters the energy balance),
+    so a scene with any of them runs the vectorised kernel whatever ``kernel`` says; the unrolled
     kernel is checked on the other effects.
     """
     nv, nb = panda.nv, panda.n_body
@@ -69,8 +71,15 @@ def test_trace_shrinks_as_each_effect_is_removed(panda, kernel):
     def wrench(t, q, v):
         return jnp.zeros((nb, 6)).at[-1, 2].set(3.0)
 
+    def support(t):
+        return jnp.stack([0.1 * jnp.sin(3.0 * t), 0.0 * t, 0.05 * t])
+
     stiff = jnp.full((panda.n_joint,), 4.0)
+    on_plane = jc.PointOnPlane(panda, panda.body_names[-1], (0.0, 0.0, 0.0), normal=(0.0, 0.0, 1.0))
     sets = [
+        dict(gravity=True, springs=stiff, dampers=True, actuation=tau, loads=wrench, support=support,
+             constraints=[on_plane]),
+        dict(gravity=True, springs=stiff, dampers=True, actuation=tau, loads=wrench, support=support),
         dict(gravity=True, springs=stiff, dampers=True, actuation=tau, loads=wrench),
         dict(gravity=True, springs=stiff, dampers=True, actuation=tau),
         dict(gravity=True, springs=stiff, dampers=True),
@@ -79,13 +88,16 @@ def test_trace_shrinks_as_each_effect_is_removed(panda, kernel):
         dict(gravity=False, springs=False, dampers=False),
     ]
     if kernel == "unrolled":
-        sets = sets[1:]
+        sets = sets[3:]
     counts = [eqn_count(jb.scene(panda, planar=False, kernel=kernel, **kw)) for kw in sets]
     assert all(a > b for a, b in zip(counts, counts[1:])), counts
     if kernel == "unrolled":
         return
-    names = [jb.scene(panda, planar=False, **kw).effect_names for kw in sets]
-    assert names[0] == ("gravity", "springs", "dampers", "actuation", "loads") and names[-1] == ()
+    scenes = [jb.scene(panda, planar=False, **kw) for kw in sets]
+    assert scenes[0].constraints is not None and all(sc.constraints is None for sc in scenes[1:])
+    names = [sc.effect_names for sc in scenes]
+    assert names[0] == names[1] == ("gravity", "springs", "dampers", "actuation", "loads", "support")
+    assert names[2] == ("gravity", "springs", "dampers", "actuation", "loads") and names[-1] == ()
 
 
 def test_model_defaults_declare_only_nonzero_effects():
@@ -104,12 +116,84 @@ def test_planar_path_chosen_and_cheaper_with_identical_trajectories():
     assert eqn_count(planar) < eqn_count(spatial)
     rng = np.random.default_rng(1)
     q0, v0 = jnp.asarray(rng.uniform(-1, 1, 7)), jnp.asarray(rng.uniform(-1, 1, 7))
+    # The two paths are different floating-point programs (absolute-angle equations with a
+    # mass matrix of augmented-body constants vs the spatial tree), so they agree to rounding,
+    # not bit for bit: one evaluation of the accelerations differs by ~1e-13 of their size
+    # (measured 5e-12 at |a| ~ 70), and 500 RK4 steps of this 7-link chain carry that to
+    # ~1e-12 in v (measured 1.3e-12 at |v| ~ 15; q, with one more integration, 3e-14). So the
+    # bound is 1e-12 absolute for q and energy and 1e-12 relative to the largest rate for v.
+    qs, vs = jnp.asarray(rng.uniform(-1, 1, (8, 7))), jnp.asarray(rng.uniform(-1, 1, (8, 7)))
+    acc = [jax.jit(jax.vmap(lambda q, v, sc=sc: sc.acceleration(0.0, q, v)))(qs, vs) for sc in (planar, spatial)]
+    np.testing.assert_allclose(acc[0], acc[1], rtol=0, atol=1e-12 * float(jnp.abs(acc[1]).max()))
     kw = dict(solver="rk4", dt0=1e-3, n_save=11)
     a = jb.simulate(planar, q0, v0, 0.5, **kw)
     b = jb.simulate(spatial, q0, v0, 0.5, **kw)
     np.testing.assert_allclose(a.q, b.q, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(a.v, b.v, rtol=0, atol=1e-11)
-    np.testing.assert_allclose(a.energy - a.energy[0], b.energy - b.energy[0], atol=1e-11)
+    np.testing.assert_allclose(a.v, b.v, rtol=0, atol=1e-12 * float(jnp.abs(b.v).max()))
+    np.testing.assert_allclose(a.energy - a.energy[0], b.energy - b.energy[0], atol=1e-12)
+
+
+def _ball_chain():
+    """``chain_model(3)`` with the middle hinge replaced by a ball joint (quaternion coordinates)."""
+    b = jb.ModelBuilder(gravity=np.array([0.0, 0.0, -9.81]))
+    for i in range(3):
+        b.add_body(f"link{i}", parent=f"link{i - 1}" if i else None, pos=np.array([0.0, 0.0, -0.4]) if i else np.zeros(3),
+                   mass=1.0 + 0.1 * i, com=np.array([0.01, 0.01, -0.2]), inertia=np.array([0.02, 0.015, 0.01]),
+                   joints=[jb.Ball() if i == 1 else jb.Hinge(axis=np.array([0.0, -1.0, 0.0]))])
+    return b.build()
+
+
+def test_no_quaternion_kinematics_without_ball_or_free_joints(monkeypatch):
+    """Hinge-only model: q̇ = v is the identity (no equation at all) and the solver step carries no
+    quaternion projection; with a ball joint q̇ holds the quaternion kinematics ½ q ⊗ (0, ω)."""
+    hinge = jb.scene(chain_model(3), planar=False)
+    ball = jb.scene(_ball_chain(), planar=False)
+    assert not hinge.has_quaternions and ball.has_quaternions
+    q, v = jnp.array([0.1, 0.2, 0.3]), jnp.array([0.3, -0.1, 0.2])
+    jx = jax.make_jaxpr(hinge.qdot)(q, v).jaxpr
+    assert count_eqns(jx) == 0 and jx.outvars[0] is jx.invars[1]  # returns v itself
+
+    quat = np.array([0.9, 0.1, -0.3, 0.2]) / np.linalg.norm([0.9, 0.1, -0.3, 0.2])
+    qb, vb = jnp.asarray(np.concatenate([[0.1], quat, [0.3]])), jnp.array([0.3, 0.5, -0.2, 0.4, 0.2])
+    jb_ = jax.make_jaxpr(ball.qdot)(qb, vb).jaxpr
+    assert count_eqns(jb_) > 0
+    w, x, y, z = quat
+    omega = np.array([0.5, -0.2, 0.4])  # body-frame angular velocity of the ball (MuJoCo layout)
+    ref = 0.5 * np.array([[-x, -y, -z], [w, -z, y], [z, w, -x], [-y, x, w]]) @ omega  # ½ q ⊗ (0, ω)
+    np.testing.assert_allclose(ball.qdot(qb, vb), np.concatenate([[0.3], ref, [0.2]]), rtol=0, atol=1e-15)
+
+    # the unit-quaternion projection of each step is left out of a hinge-only solve: forcing the
+    # quaternion path in adds equations and changes nothing
+    def solve_eqns(sc):
+        run = lambda q, v: jb.simulate(sc, q, v, 0.01, solver="rk4", dt0=1e-3, n_save=2).q  # noqa: E731
+        return count_eqns(jax.make_jaxpr(run)(q, v).jaxpr), run(q, v)
+
+    n_special, q_special = solve_eqns(hinge)
+    monkeypatch.setattr(jb.Scene, "has_quaternions", property(lambda self: True))
+    n_general, q_general = solve_eqns(jb.scene(chain_model(3), planar=False))
+    assert n_special < n_general, (n_special, n_general)
+    np.testing.assert_array_equal(q_special, q_general)
+
+
+def test_fixed_base_program_has_no_free_base_terms():
+    """Fixed base: the carrier (free-base) acceleration terms of Cor. 1 are absent from the traced
+    vector field. Marking the root of a hinge chain as free forces them in: they add equations and,
+    the root's anchor being at rest, change no acceleration."""
+    import copy
+
+    m = chain_model(4)
+    assert not any(m.joints.body_is_free)
+    joints = copy.copy(m.joints)
+    object.__setattr__(joints, "body_is_free", (1,) + tuple(m.joints.body_is_free[1:]))
+    forced = copy.copy(m)
+    object.__setattr__(forced, "joints", joints)
+    fixed_sc = jb.scene(m, planar=False, kernel="vectorised")
+    forced_sc = jb.scene(forced, planar=False, kernel="vectorised")
+    assert eqn_count(fixed_sc) < eqn_count(forced_sc)
+    rng = np.random.default_rng(4)
+    q, v = jnp.asarray(rng.uniform(-1, 1, 4)), jnp.asarray(rng.uniform(-1, 1, 4))
+    np.testing.assert_allclose(fixed_sc.acceleration(0.0, q, v), forced_sc.acceleration(0.0, q, v), rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(fixed_sc.acceleration(0.0, q, v), jb.forward_dynamics(m, q, v), rtol=1e-12, atol=1e-12)
 
 
 def test_planar_path_needs_parallel_axes_and_in_plane_gravity():
