@@ -4,17 +4,23 @@ For the menagerie panda (spatial path) and a 7-link planar chain (planar absolut
 next to the spatial path of the same model), for each effect set from "everything" down to
 "nothing", this measures one evaluation of the scene's vector field ``(t, q, v) -> a``:
 
-* jaxpr equation count and XLA ``cost_analysis`` flops of the compiled program;
+* jaxpr equation count (including the equations inside nested calls and loops) and XLA
+  ``cost_analysis`` flops of the compiled program;
 * compile time (lower + XLA compile) and warm time per call (median, ``block_until_ready``);
 * warm time per state of a ``vmap`` over ``--batch`` states (throughput regime).
 
-Results go to ``benchmarks/results/effects.{md,json}`` stamped with commit, machine, versions,
-date and command (STYLE rule 15).
+The effect sets, from the largest down: a Maggi constraint (the last body's origin on a
+horizontal plane), a prescribed support motion, body loads, actuation, dampers, springs, gravity.
+Sets with loads or a constraint run on the spatial path only.
+
+Results go to ``benchmarks/results/effects.{md,json}`` (``--out`` picks another folder) stamped
+with commit, machine, versions, date and command (STYLE rule 15).
 
 Usage::
 
     XLA_FLAGS=--xla_cpu_use_fusion_emitters=false .venv/bin/python benchmarks/effects.py
     .venv/bin/python benchmarks/effects.py --batch 256 --min-time 0.2 --tag quick
+    .venv/bin/python benchmarks/effects.py --only chain7:planar --batch 4 --min-time 0.01 --out /tmp/fx
 """
 
 import argparse
@@ -27,7 +33,21 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import _common  # noqa: E402
 
 
-def effect_sets(model, jnp):
+def count_eqns(jax, jaxpr) -> int:
+    """Equations of a jaxpr, including those of every sub-jaxpr (calls, loops, custom rules)."""
+    total = 0
+    for eqn in jaxpr.eqns:
+        total += 1
+        for param in eqn.params.values():
+            for sub in param if isinstance(param, (list, tuple)) else (param,):
+                if isinstance(sub, jax.extend.core.ClosedJaxpr):
+                    total += count_eqns(jax, sub.jaxpr)
+                elif isinstance(sub, jax.extend.core.Jaxpr):
+                    total += count_eqns(jax, sub)
+    return total
+
+
+def effect_sets(jb, model, jnp):
     nv, nb = model.nv, model.n_body
 
     def tau(t, q, v):
@@ -38,8 +58,17 @@ def effect_sets(model, jnp):
 
     stiff = jnp.full((model.n_joint,), 4.0)
     damp = jnp.full((nv,), 0.3)
+    def support(t):
+        return jnp.stack([0.1 * jnp.sin(3.0 * t), 0.0 * t, 0.05 * t])
+
+    from jaxbody import constraints as jc
+
+    on_plane = jc.PointOnPlane(model, model.body_names[-1], (0.0, 0.0, 0.0), normal=(0.0, 0.0, 1.0))
     full = dict(gravity=True, springs=stiff, dampers=damp, actuation=tau, loads=wrench)
     return [
+        ("gravity+springs+dampers+actuation+loads+support+constraint", {**full, "support": support,
+                                                                        "constraints": [on_plane]}),
+        ("gravity+springs+dampers+actuation+loads+support", {**full, "support": support}),
         ("gravity+springs+dampers+actuation+loads", full),
         ("gravity+springs+dampers+actuation", {**full, "loads": None}),
         ("gravity+springs+dampers", {**full, "loads": None, "actuation": None}),
@@ -72,7 +101,7 @@ def measure(jax, jnp, np, scene, batch, min_time):
     def f(t, q, v):
         return scene.acceleration(t, q, v)
 
-    eqns = len(jax.make_jaxpr(f)(t, q, v).eqns)
+    eqns = count_eqns(jax, jax.make_jaxpr(f)(t, q, v).jaxpr)
     t0 = time.perf_counter()
     compiled = jax.jit(f).lower(t, q, v).compile()
     compile_s = time.perf_counter() - t0
@@ -98,6 +127,10 @@ def main():
     ap.add_argument("--min-time", type=float, default=0.5)
     ap.add_argument("--tag", default="", help="suffix of the result files (effects_<tag>.*)")
     ap.add_argument("--models-dir", type=pathlib.Path, default=_common.REPO / "jaxbody" / "models")
+    ap.add_argument("--out", type=pathlib.Path, default=_common.RESULTS, help="folder of the result files")
+    ap.add_argument("--only", default="", help="comma-separated cases to run, e.g. chain7:planar "
+                    "(cases: panda:spatial, chain7:planar, chain7:spatial; default all)")
+    ap.add_argument("--max-sets", type=int, default=None, help="measure at most this many effect sets per case")
     args = ap.parse_args()
     st = _common.stamp()
 
@@ -110,13 +143,21 @@ def main():
     import jaxbody as jb
 
     rows = []
-    panda = jb.from_mjcf(str(args.models_dir / "panda.xml"))
-    chain = chain7(jb, np)
-    cases = [("panda", "spatial", panda, False), ("chain7", "planar", chain, None), ("chain7", "spatial", chain, False)]
-    for name, path, model, planar in cases:
-        for label, kw in effect_sets(model, jnp):
-            if path == "planar" and kw.get("loads") is not None:
-                continue  # loads take the spatial path
+    only = [c for c in args.only.split(",") if c]
+    cases = [("panda", "spatial", False), ("chain7", "planar", None), ("chain7", "spatial", False)]
+    unknown = set(only) - {f"{n}:{p}" for n, p, _ in cases}
+    if unknown:
+        ap.error(f"--only: unknown cases {sorted(unknown)}")
+    cases = [c for c in cases if not only or f"{c[0]}:{c[1]}" in only]
+    models = {}
+    for name, path, planar in cases:
+        if name not in models:
+            models[name] = jb.from_mjcf(str(args.models_dir / "panda.xml")) if name == "panda" else chain7(jb, np)
+        model = models[name]
+        sets = [(label, kw) for label, kw in effect_sets(jb, model, jnp)
+                if path != "planar" or (kw.get("loads") is None and kw.get("constraints") is None)]
+        # (loads and constraints take the spatial path)
+        for label, kw in sets[:args.max_sets]:
             sc = jb.scene(model, planar=planar, **kw)
             assert sc.path == path, (name, label, sc.path)
             r = measure(jax, jnp, np, sc, args.batch, args.min_time)
@@ -126,8 +167,8 @@ def main():
     st["load_average_end"] = _common.load_average()
     st["device"] = str(jax.devices()[0])
     stem = "effects" + (f"_{args.tag}" if args.tag else "")
-    _common.RESULTS.mkdir(parents=True, exist_ok=True)
-    (_common.RESULTS / f"{stem}.json").write_text(json.dumps({"stamp": st, "batch": args.batch, "rows": rows}, indent=1))
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / f"{stem}.json").write_text(json.dumps({"stamp": st, "batch": args.batch, "rows": rows}, indent=1))
     headers = ["model", "path", "effects", "jaxpr eqns", "flops", "compile (s)", "one call (µs)", f"vmap {args.batch} (µs/state)"]
     table = _common.markdown_table(headers, [
         [r["model"], r["path"], r["effects"], r["jaxpr_eqns"], f"{r['flops']:.0f}", f"{r['compile_s']:.2f}",
@@ -139,7 +180,9 @@ def main():
         _common.stamp_markdown(st),
         f"- device: {st['device']}",
         "",
-        "One evaluation of `scene.acceleration(t, q, v)`; flops from XLA `cost_analysis` of the compiled program.",
+        "One evaluation of `scene.acceleration(t, q, v)`; jaxpr equations counted into nested calls and loops;",
+        "flops from XLA `cost_analysis` of the compiled program. The constraint is the last body's origin on a",
+        "horizontal plane (Maggi layer); the support moves as s(t) = (0.1 sin 3t, 0, 0.05 t).",
         "The planar path of `chain7` runs the absolute-angle equations; the spatial rows are the same model with `planar=False`.",
         "Equation counts and flops are exact; times on a shared machine are noisy (see the load average above):",
         "compare them only within one run, and prefer the flops column for the cost of an effect.",
@@ -147,8 +190,8 @@ def main():
         table,
         "",
     ]
-    (_common.RESULTS / f"{stem}.md").write_text("\n".join(md))
-    print(f"wrote {_common.RESULTS / (stem + '.md')}")
+    (args.out / f"{stem}.md").write_text("\n".join(md))
+    print(f"wrote {args.out / (stem + '.md')}")
 
 
 if __name__ == "__main__":
