@@ -1139,7 +1139,10 @@ class PhasedSolution(eqx.Module):
     ``num_repartitions`` and ``repartition_times`` count and list the changes of coordinate
     partition inside the phases (the choice made at each switch is not counted); ``result``
     is :attr:`MaggiResult.partition_degraded` when a phase with ``repartition=False``
-    stopped on a degraded partition (the solution then ends there), else ``successful``."""
+    stopped on a degraded partition (the solution then ends there), else ``successful``.
+    ``v0_correction`` is ``x₀_projected − x₀`` when ``project_initial=True`` projected the
+    initial velocities onto the first phase's constraints (zeros when they were admissible
+    or not projected), as :func:`initial_state` returns it."""
 
     t: Array
     q: Array
@@ -1152,6 +1155,7 @@ class PhasedSolution(eqx.Module):
     num_repartitions: Array
     repartition_times: Array
     result: MaggiResult
+    v0_correction: Array | None = None
 
 
 def _event_cond(cond):
@@ -1187,6 +1191,10 @@ def simulate_phases(
     partition_degraded``. Saved points: ``n_save`` evenly spaced times over ``[t0, t1]`` that
     fall in each phase, plus every phase's start and end.
 
+    ``project_initial=True`` projects initial velocities that violate the first phase's
+    constraints onto them (kinetic metric, :func:`initial_state`); the correction is
+    returned as :attr:`PhasedSolution.v0_correction`.
+
     Raises:
         ValueError: the initial velocities violate the first phase's constraints (unless
             ``project_initial``).
@@ -1198,7 +1206,7 @@ def simulate_phases(
     grid = np.linspace(t0, t1, n_save)
     ts, qs, vs, ph, lams, energies, reports, switch_t = [], [], [], [], [], [], [], []
     n_rep, rep_times, degraded = 0, [], False
-    q, x, _ = initial_state(phases[0].system, q, x, t, project_initial=project_initial)
+    q, x, v0_correction = initial_state(phases[0].system, q, x, t, project_initial=project_initial)
     for k, phase in enumerate(phases):
         system = phase.system
         if k > 0:
@@ -1257,6 +1265,7 @@ def simulate_phases(
         num_repartitions=jnp.asarray(n_rep),
         repartition_times=jnp.asarray(np.asarray(rep_times, dtype=np.float64)),
         result=MaggiResult.where(jnp.asarray(degraded), MaggiResult.partition_degraded, MaggiResult.successful),
+        v0_correction=v0_correction,
     )
 
 

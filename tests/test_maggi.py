@@ -192,3 +192,44 @@ def test_bad_epsilon_is_rejected_at_build_time():
         maggi.constrain(base, roll, q_ref=q, epsilon=lambda b, t, q, x: jnp.stack([x[0], x[1], x[4]]))
     with pytest.raises(ValueError, match="constraints must be jaxbody.maggi.Constraint instances"):
         maggi.constrain(base, [lambda t, q, x: x[0]], q_ref=q)
+
+
+class _Particle(maggi.QuasiVelocitySystem):
+    """A particle in a vertical plane (Cartesian coordinates = quasi-velocities)."""
+
+    mass: jax.Array
+    nq = 2
+    nv = 2
+
+    def kinetic_energy_rates(self, q, qd):
+        return 0.5 * self.mass * qd @ qd
+
+    def potential_energy(self, q):
+        return self.mass * 9.81 * q[1]
+
+    def qdot(self, q, x):
+        return x
+
+    def quasi_velocities(self, q, qd):
+        return qd
+
+
+def test_simulate_phases_reports_the_initial_velocity_correction():
+    """project_initial=True: the projected start is the kinetic-metric closest admissible
+    velocity, and the correction is returned (not thrown away)."""
+    L = 1.3
+    rod = maggi.VelocityConstraint(lambda b, t, q, x: (q @ x)[None] / L, size=1, label="rod",
+                                   position=lambda b, t, q: ((q @ q - L**2) / (2 * L))[None])
+    q0 = jnp.array([L * np.sin(0.3), -L * np.cos(0.3)])
+    pend = maggi.constrain(_Particle(jnp.asarray(0.7)), [rod], q_ref=q0)
+    bad = jnp.array([1.0, 2.0])  # has a radial component
+    with pytest.raises(ValueError, match=r"initial velocities violate the constraints \['rod\[0\]'\]"):
+        maggi.simulate_phases([maggi.Phase(pend)], q0, bad, 0.1, n_save=3)
+    run = maggi.simulate_phases([maggi.Phase(pend)], q0, bad, 0.1, n_save=3, project_initial=True)
+    # the radial part removed: the tangential velocity kept (equal masses: Euclidean projection)
+    radial = q0 / L
+    np.testing.assert_allclose(run.v0_correction, -(bad @ radial) * radial, rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(run.v[0], bad + run.v0_correction, rtol=1e-12)
+    np.testing.assert_allclose(pend.constraint_residual(0.0, q0, run.v[0]), 0.0, atol=1e-12)
+    ok = maggi.simulate_phases([maggi.Phase(pend)], q0, run.v[0], 0.1, n_save=3)
+    np.testing.assert_array_equal(ok.v0_correction, 0.0)
