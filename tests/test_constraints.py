@@ -399,10 +399,13 @@ def test_knife_edge_on_a_free_sled():
     np.testing.assert_allclose(r.xdot[:2] @ np.array([np.cos(0.3), np.sin(0.3)]), 0.0, atol=1e-12)
 
 
-def four_bar_mjcf(th, solref="0.0002 1", solimp="0.99999 0.99999 0.001"):
+def four_bar_mjcf(th, solref="0.0002 1", solimp="0.99999 0.99999 0.001", sites=False):
     """The four-bar of four_bar() in MJCF, its body frames turned so that qpos = 0 is the closed
-    configuration ``th`` (MuJoCo places the connect's second anchor at qpos = 0)."""
+    configuration ``th`` (MuJoCo places the connect's second anchor at qpos = 0). ``sites``:
+    the connect joins two sites at the link ends instead of a body anchor."""
     q = [th[0], th[1] - th[0], th[2]]
+    site = lambda name, l: f'<site name="{name}" pos="{l} 0 0"/>' if sites else ""
+    ends = 'site1="s_coupler" site2="s_rocker"' if sites else f'body1="coupler" body2="rocker" anchor="{L2} 0 0"'
     inert = lambda m, l, I: f'<inertial pos="{l / 2} 0 0" mass="{m}" diaginertia="{I / 10} {I} {I}"/>'
     return f"""
 <mujoco>
@@ -415,15 +418,17 @@ def four_bar_mjcf(th, solref="0.0002 1", solimp="0.99999 0.99999 0.001"):
       <body name="coupler" pos="{L1} 0 0" euler="0 {-q[1]} 0">
         <joint name="j2" type="hinge" axis="0 -1 0"/>
         {inert(MASS[1], L2, INER[1])}
+        {site("s_coupler", L2)}
       </body>
     </body>
     <body name="rocker" pos="{D_GROUND} 0 0" euler="0 {-q[2]} 0">
       <joint name="j3" type="hinge" axis="0 -1 0"/>
       {inert(MASS[2], L3, INER[2])}
+      {site("s_rocker", L3)}
     </body>
   </worldbody>
   <equality>
-    <connect name="loop" body1="coupler" body2="rocker" anchor="{L2} 0 0" solref="{solref}" solimp="{solimp}"/>
+    <connect name="loop" {ends} solref="{solref}" solimp="{solimp}"/>
   </equality>
 </mujoco>"""
 
@@ -436,9 +441,13 @@ def test_mjcf_connect_imports_as_loop_closure_and_matches_mujoco():
     th = four_bar_angles(0.6)
     xml = four_bar_mjcf(th)
     mj = mujoco.MjModel.from_xml_string(xml)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")  # the connect is imported, not reported as ignored
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("always")
         model = jb.from_mujoco(mj)
+    # the connect is not reported as ignored: the warning only says how to attach it
+    (msg,) = [str(w.message) for w in rec]
+    assert "ignored" not in msg and "1 <connect> loop closures ('loop')" in msg
+    assert "jaxbody.constraints.connect_constraints(mj_model, model)" in msg
     loops = jc.connect_constraints(mj, model, axes=[(1, 0, 0), (0, 0, 1)])
     assert len(loops) == 1 and loops[0].names == ("loop[0]", "loop[1]")
     np.testing.assert_allclose(loops[0].point_b, [L3, 0, 0], atol=1e-9)  # MuJoCo's anchor in the rocker frame
@@ -472,7 +481,39 @@ def test_cassie_style_loops_are_not_reported_as_ignored():
     with pytest.warns(UserWarning) as rec:
         jb.from_mjcf(xml)
     msg = str(rec[0].message)
-    assert "1 constraints ('couple')" in msg and "'loop'" not in msg
+    ignored, note = msg.split("<connect>")
+    assert "1 constraints ('couple')" in ignored and "'loop'" not in ignored
+    assert "loop closures ('loop')" in note and "connect_constraints" in note
+
+
+def test_site_based_connect_and_scene_path():
+    """A <connect site1= site2=> closes the four-bar like the body/anchor form: the closure
+    from connect_constraints, passed to jb.scene, gives the builder-made linkage's
+    accelerations and pin force (the documented path of docs/maggi.md)."""
+    import warnings
+
+    import mujoco
+
+    th = four_bar_angles(0.6)
+    xml = four_bar_mjcf(th, sites=True)
+    assert 'site1="s_coupler"' in xml and xml.count("<site") == 2
+    mj = mujoco.MjModel.from_xml_string(xml)
+    assert int(mj.eq_objtype[0]) == int(mujoco.mjtObj.mjOBJ_SITE)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = jb.from_mujoco(mj)
+    loops = jc.connect_constraints(mj, model, axes=[(1, 0, 0), (0, 0, 1)])
+    assert len(loops) == 1 and loops[0].body_a == model.body_index("coupler") and loops[0].body_b == model.body_index("rocker")
+    np.testing.assert_allclose(loops[0].point_a, [L2, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(loops[0].point_b, [L3, 0, 0], atol=1e-12)
+    sc = jb.scene(model, constraints=loops)  # checked at qpos0, the closed configuration
+    q = jnp.asarray(mj.qpos0)
+    w = four_bar_rates(th, 1.5)
+    v = jnp.array([w[0], w[1] - w[0], w[2]])
+    a, _, lam = sc.evaluate(0.0, q, v)
+    ref = four_bar().solve(0.0, jnp.array([th[0], th[1] - th[0], th[2]]), v)
+    np.testing.assert_allclose(a, ref.xdot, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(lam, ref.reactions, rtol=1e-9, atol=1e-9)
 
 
 SPATIAL_LOOP = """
@@ -504,7 +545,8 @@ def test_spatial_ball_joint_loop_against_mujoco_connect():
     import mujoco
 
     mj = mujoco.MjModel.from_xml_string(SPATIAL_LOOP)
-    model = jb.from_mujoco(mj)
+    with pytest.warns(UserWarning, match=r"1 <connect> loop closures \('ring'\).*connect_constraints"):
+        model = jb.from_mujoco(mj)
     loops = jc.connect_constraints(mj, model)
     q = jnp.asarray(mj.qpos0)
     s = maggi.constrain(model, loops, q_ref=q)
@@ -527,7 +569,8 @@ def test_spatial_ball_joint_loop_stays_closed():
     import mujoco
 
     mj = mujoco.MjModel.from_xml_string(SPATIAL_LOOP)
-    model = jb.from_mujoco(mj)
+    with pytest.warns(UserWarning, match=r"1 <connect> loop closures \('ring'\).*connect_constraints"):
+        model = jb.from_mujoco(mj)
     q = jnp.asarray(mj.qpos0)
     s = maggi.constrain(model, jc.connect_constraints(mj, model), q_ref=q)
     v = maggi.project_velocities(s, q, jnp.asarray(np.random.default_rng(5).normal(size=9)))

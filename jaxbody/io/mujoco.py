@@ -250,12 +250,34 @@ def _from_mujoco(mj_model, strict: bool, dtype, _caller: str) -> Model:
             raise ValueError(
                 f"{where} has features jaxbody does not model (strict=True):\n{lines}"
             )
+    note = _connect_note(m, where)
+    if issues or note:
+        head = f"{where} has features jaxbody does not model; they are ignored:\n{lines}" if issues else ""
         warnings.warn(
-            f"{where} has features jaxbody does not model; they are ignored:\n{lines}",
+            "\n".join(x for x in (head, note) if x),
             UserWarning,
             stacklevel=4 if _caller != "from_mujoco" else 3,
         )
     return model
+
+
+def _connect_note(m, where) -> str | None:
+    """The import note on ``<equality><connect>`` loop closures: a Model is a tree, so they are
+    not part of it; :func:`jaxbody.constraints.connect_constraints` returns them."""
+    mujoco = _mujoco()
+    if int(m.opt.disableflags) & (int(mujoco.mjtDisableBit.mjDSBL_EQUALITY) | int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT)):
+        return None
+    ids = [i for i in range(int(m.neq)) if int(m.eq_type[i]) == int(mujoco.mjtEq.mjEQ_CONNECT)]
+    if not ids:
+        return None
+    names = ", ".join(repr(_name(m, mujoco.mjtObj.mjOBJ_EQUALITY, i) or f"connect{i}") for i in ids[:_MAX_NAMES])
+    more = f", ... and {len(ids) - _MAX_NAMES} more" if len(ids) > _MAX_NAMES else ""
+    return (
+        f"{where}: {len(ids)} <connect> loop closures ({names}{more}) are not part of the Model (a tree): "
+        "get them with jaxbody.constraints.connect_constraints(mj_model, model) and pass them to "
+        "jb.scene(model, constraints=...) (docs/maggi.md, 'Closed loops from MJCF'); without that "
+        "the loops stay open"
+    )
 
 
 def unsupported_features(mj_model) -> list[str]:
