@@ -799,10 +799,16 @@ def fit_trajectory(
     segments are simulated as one ``vmap`` batch. Each segment is short, so the loss stays
     close to quadratic in the parameters even where the whole horizon is long or chaotic and
     single shooting has many local minima; at the solution of noise-free data every defect
-    vanishes, so the penalty does not bias the estimate.
+    vanishes, so the penalty does not bias the estimate. Use ``"levenberg_marquardt"`` with
+    ``segments > 1``: the optax optimisers see the defects only through the summed loss and
+    stall in the curved valley the penalty leaves between segment states and parameters
+    (3-link arm, two segments, ±30 % start: L-BFGS at a parameter error of 0.32 after 120
+    iterations; Levenberg–Marquardt at 1e-9 in about 20).
 
     Optimisers: ``"lbfgs"`` (``optax.lbfgs`` with its zoom line search), ``"adam"`` (with
-    ``learning_rate``), any optax transformation, or ``"levenberg_marquardt"`` — a
+    ``learning_rate``; first order with a fixed step, it lowers the loss by orders of magnitude
+    but ends at parameter errors of about 1e-3, not at the integration error), any optax
+    transformation, or ``"levenberg_marquardt"`` — a
     Levenberg–Marquardt (damped Gauss–Newton) method on the residual vector whose sum of
     squares is the loss, with Nielsen's damping update; the Jacobian comes from
     forward-mode differentiation through the integrator (``adjoint="forward"``), one column
@@ -940,7 +946,6 @@ def _optax_loop(loss_fn, x, optimizer, learning_rate, steps, tol, bar, start):
             updates, state = opt.update(grad, state, x)
             return optax.apply_updates(x, updates), state, value, optax.tree.norm(grad)
 
-    value_grad = eqx.filter_jit(jax.value_and_grad(loss_fn))
     losses, gnorms, times = [], [], []
     converged = False
     it = 0
@@ -959,9 +964,12 @@ def _optax_loop(loss_fn, x, optimizer, learning_rate, steps, tol, bar, start):
         if float(value) < tol:
             converged = True
             break
-    final, g = value_grad(x)
+    # the loss and gradient norm at the final iterate: one more call of the compiled step, its
+    # update discarded (a separately compiled value_and_grad would double the compile time)
+    with jax.numpy_dtype_promotion("standard"):
+        _, _, final, gnorm = step(x, state)
     losses.append(float(final))
-    gnorms.append(float(optax.tree.norm(g)))
+    gnorms.append(float(gnorm))
     times.append(time.perf_counter() - start)
     converged = converged or float(final) < tol
     return x, losses, gnorms, times, it, converged

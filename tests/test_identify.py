@@ -149,7 +149,7 @@ def _torque2(t, q, v):
     return jnp.stack([2.0 * jnp.sin(2.0 * t), jnp.cos(3.0 * t)])
 
 
-@pytest.mark.slow  # about 60 s; notebook 06 fits the double pendulum in the default suite
+@pytest.mark.slow  # about 60 s (L-BFGS); test_fit_double_pendulum_short_horizon_lm is the default-suite fit
 def test_fit_double_pendulum_from_perturbed_start():
     system = jb.examples.double_pendulum()
     t = np.linspace(0.0, 1.5, 31)
@@ -162,6 +162,48 @@ def test_fit_double_pendulum_from_perturbed_start():
     assert res.history["loss"][-1] < 1e-14 * res.history["loss"][0]
     np.testing.assert_allclose(np.asarray(res.system.body_mass), [1.0, 0.6], rtol=1e-5)
     np.testing.assert_allclose(np.asarray(res.system.body_com), [[0.4, 0.0], [0.3, 0.0]], atol=1e-5)
+
+
+def _double_pendulum_data(T, n):
+    system = jb.examples.double_pendulum()
+    t = np.linspace(0.0, T, n)
+    sol = jb.simulate(system, jnp.array([0.3, -0.2]), jnp.zeros(2), T, tau=_torque2, saveat=t, rtol=1e-11, atol=1e-11)
+    return system, t, sol
+
+
+def test_fit_double_pendulum_short_horizon_lm():
+    # Default-suite trajectory fit: masses and centres of mass of the double pendulum from a
+    # +-30 % start, 11 samples over 1 s, Levenberg-Marquardt through the integrator (14
+    # iterations); the truth is the model that made the data (examples.double_pendulum).
+    system, t, sol = _double_pendulum_data(1.0, 11)
+    P = idf.Parameterisation(system, {"body_mass": "log", "body_com": "identity"})
+    x = P.initial()
+    x0 = {"body_mass": x["body_mass"] + jnp.log(jnp.array([1.3, 0.7])),
+          "body_com": x["body_com"] * jnp.array([[0.7], [1.3]])}
+    res = idf.fit_trajectory(P, x0, t, sol.q, sol.v, tau=_torque2, optimizer="levenberg_marquardt", steps=30,
+                             tol=1e-24, progress=False)
+    assert res.history["loss"][-1] < 1e-14 * res.history["loss"][0]
+    assert res.n_iter < 30
+    np.testing.assert_allclose(np.asarray(res.system.body_mass), [1.0, 0.6], rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(res.system.body_com), [[0.4, 0.0], [0.3, 0.0]], atol=1e-6)
+
+
+def test_fit_double_pendulum_masses_with_adam_and_progress_bar(capfd):
+    # Adam (optax.adam, learning rate 0.1) on the two log-masses, +-30 % start, 6 samples over
+    # 0.5 s: a first-order method does not reach the round-off floor of L-BFGS or LM in 100
+    # steps, but it lowers the loss by orders of magnitude and lands within a few per cent.
+    system, t, sol = _double_pendulum_data(0.5, 6)
+    P = idf.Parameterisation(system, {"body_mass": "log"})
+    x0 = {"body_mass": P.initial()["body_mass"] + jnp.log(jnp.array([1.3, 0.7]))}
+    res = idf.fit_trajectory(P, x0, t, sol.q, sol.v, tau=_torque2, optimizer="adam", learning_rate=0.1,
+                             steps=100, progress=True)
+    loss = res.history["loss"]
+    assert res.n_iter == 100 and loss.shape == (101,)
+    assert loss[-1] < 1e-3 * loss[0]
+    np.testing.assert_allclose(np.asarray(res.system.body_mass), [1.0, 0.6], rtol=0.03)
+    # the progress bar (tqdm, on stderr) counted the steps and showed the loss
+    err = capfd.readouterr().err
+    assert "fit:" in err and "/100" in err and "loss=" in err
 
 
 def _torque3(t, q, v):
@@ -327,8 +369,9 @@ def test_fit_rolling_disk_radius_and_mass():
 
 @pytest.mark.slow  # 17-30 s on 2 cores; the slow job runs it
 def test_rolling_disk_loss_gradient_matches_finite_differences():
-    # The default-suite part of the disk fit: the loss and its forward-mode derivative with
-    # respect to (log mass, log radius), through the projection and the constrained solve.
+    # The disk fit's derivative on its own (both run in the slow job only): the loss and its
+    # forward-mode derivative with respect to (log mass, log radius), through the projection
+    # and the constrained solve.
     system, t, sol, tau, P, xp, admissible = _disk_case()
 
     @jax.jit
