@@ -110,3 +110,23 @@ def test_kernels_benchmark_smoke(tmp_path):
         assert row[k]["simulate rk4 preset"]["batch_steps_per_s"] > 0 and row[k]["simulate tableau RK4"]["compile_s"] > 0
     assert row["mj_step_us"] > 0 and "| chain2 |" in (tmp_path / "rec.md").read_text()
     assert "| chain2 | unrolled | rk4 preset |" in (tmp_path / "rec.md").read_text()
+
+
+def test_effects_benchmark_smoke(tmp_path):
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    cmd = [sys.executable, str(BENCH / "effects.py"), "--out", str(tmp_path), "--tag", "rec",
+           "--only", "chain7:planar", "--max-sets", "2", "--batch", "4", "--min-time", "0.01"]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env, cwd=REPO)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    rec = json.loads((tmp_path / "effects_rec.json").read_text())
+    assert rec["stamp"]["commit"] and rec["stamp"]["command"].endswith("--min-time 0.01")
+    rows = rec["rows"]
+    # the planar path skips the sets with loads or a constraint (they need the spatial path)
+    assert [(r["model"], r["path"]) for r in rows] == [("chain7", "planar")] * 2
+    assert [r["effects"] for r in rows] == ["gravity+springs+dampers+actuation", "gravity+springs+dampers"]
+    assert rows[0]["jaxpr_eqns"] > rows[1]["jaxpr_eqns"] > 0  # actuation adds equations
+    assert rows[0]["flops"] > 0 and rows[1]["flops"] > 0
+    assert all(r["call_us"] > 0 and r["batched_us_per_state"] > 0 for r in rows)
+    md = (tmp_path / "effects_rec.md").read_text()
+    assert rec["stamp"]["commit"] in md and "| chain7 | planar |" in md

@@ -246,9 +246,12 @@ def test_adjoints_agree():
         np.testing.assert_allclose(got, ref, rtol=1e-6)
 
 
-def test_save_load_and_csv(tmp_path):
+def test_save_load_and_csv(tmp_path, capfd):
     m = pendulum(damping=0.2)
+    capfd.readouterr()
     sol = jb.simulate(m, jnp.array([0.5]), jnp.array([0.0]), 1.0, n_save=6, progress=True)
+    err = capfd.readouterr().err  # progress=True shows diffrax's meter (tqdm, on stderr) up to 100%
+    assert "100.00%" in err and "%|" in err, err[-500:]
     sol.save(tmp_path / "traj.npz")
     back = jb.load_solution(tmp_path / "traj.npz")
     for f in ("t", "q", "v", "energy", "t_final"):
@@ -406,6 +409,30 @@ def test_batch_compiles_once_for_all_chunks_and_calls():
     assert per_compile > 0
     jb.simulate_batch(sc, q0s + 0.1, v0s, 1.0, n_save=3, chunk_size=2)
     assert len(TRACES) == per_compile  # no new trace: one compilation served every chunk and call
+
+
+def test_parameter_batch_compiles_once_and_equals_loop(capfd):
+    """simulate_batch(..., batched_system=True): one compilation serves every chunk of a parameter
+    batch and a second batch of other parameter values; each member equals its own solve; no
+    progress meter unless asked."""
+    def stack(dampings):
+        scenes = [jb.scene(pendulum(damping=d), effects=(CountingLoad(),)) for d in dampings]
+        return jax.tree.map(lambda *xs: jnp.stack(xs), *scenes)
+
+    q0s, v0s = jnp.linspace(-1.0, 1.0, 6)[:, None], jnp.zeros((6, 1))
+    capfd.readouterr()
+    TRACES.clear()
+    sol = jb.simulate_batch(stack([0.05, 0.1, 0.2, 0.3, 0.4, 0.5]), q0s, v0s, 1.0, n_save=3, chunk_size=2,
+                            batched_system=True)  # three chunks
+    per_compile = len(TRACES)
+    assert per_compile > 0
+    sol2 = jb.simulate_batch(stack([0.6, 0.7, 0.8, 0.9, 1.0, 1.1]), q0s, v0s, 1.0, n_save=3, chunk_size=2,
+                             batched_system=True)
+    assert len(TRACES) == per_compile  # no new trace for other chunks or other parameter values
+    assert "%|" not in capfd.readouterr().err
+    one = jb.simulate(pendulum(damping=1.1), q0s[5], v0s[5], 1.0, n_save=3)  # member 5 of the second batch
+    np.testing.assert_allclose(sol2.q[5], one.q, rtol=0, atol=1e-12)
+    assert not np.allclose(sol.q[:, -1], sol2.q[:, -1])  # the dampings did change the motion
 
 
 def test_parameter_pairs_get_gradients_and_errors_are_pinned():
