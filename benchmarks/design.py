@@ -1,9 +1,12 @@
 """Balancing-design benchmark: added mass, residual coupling, iterations and wall time.
 
-    XLA_FLAGS=--xla_cpu_use_fusion_emitters=false python benchmarks/design.py [--quick]
+    XLA_FLAGS=--xla_cpu_use_fusion_emitters=false python benchmarks/design.py [--quick] [--smoke]
 
 Writes benchmarks/results/design{_quick}.json, .md and .png (trade-off curve of added mass
 against residual coupling for the three-link arm), stamped with commit, machine and command.
+Cases: closed form and optax synthesis (two penalties) for the 3-link arm, the cart-pendulum
+and a spatial ball-joint tree, and the 3-link arm with link extensions (massless, up to twice
+the link's reach) as design variables. ``--smoke``: the 3-link arm only, for the test suite.
 """
 
 import argparse
@@ -18,7 +21,10 @@ from _common import RESULTS, load_average, markdown_table, stamp, stamp_markdown
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--quick", action="store_true")
+    p.add_argument("--quick", action="store_true", help="fewer trade-off points")
+    p.add_argument("--smoke", action="store_true", help="the 3-link arm only, two trade-off points (tests)")
+    p.add_argument("--out", default=None, help="output folder (default benchmarks/results)")
+    p.add_argument("--name", default=None, help="record name (default design or design_quick)")
     args = p.parse_args(argv)
     st = stamp()
     import jax
@@ -46,6 +52,8 @@ def main(argv=None):
         ("spatial ball-joint tree, 4 bodies", ball_tree()),
     ]
     penalties = [{"mass": 1.0, "inertia": 0.0}, {"mass": 1.0, "inertia": 1.0}]
+    if args.smoke:
+        cases, penalties = cases[:1], penalties[:1]
     rows, record = [], {"stamp": st, "cases": [], "tradeoff": {}}
     for name, system in cases:
         design.static_balance(system)  # compiles
@@ -56,6 +64,13 @@ def main(argv=None):
             design.balance(system, penalty=pen)
             _, rep = design.balance(system, penalty=pen)
             entries.append((f"optax AL + L-BFGS, penalty {pen}", rep))
+        if name.startswith("3-link arm"):  # link extensions as design variables
+            ext = {"length": (0.0, 2.0 * design._scale_length(system)[list(design.required_bodies(system))])}
+            pen = {"mass": 1.0, "inertia": 0.0}
+            design.balance(system, penalty=pen, extensions=ext)
+            _, rep = design.balance(system, penalty=pen, extensions=ext)
+            entries.append((f"optax AL + L-BFGS, link extensions up to 2x reach (lengths "
+                            f"{np.array2string(rep.extension_length, precision=3)}), penalty {pen}", rep))
         for how, rep in entries:
             rows.append([name, how, list(rep.bodies), f"{rep.added_mass:.4f}", f"{rep.added_inertia:.4f}",
                          f"{rep.coupling_before:.3e}", f"{rep.residual_coupling:.3e}",
@@ -67,15 +82,20 @@ def main(argv=None):
                                         residual_static_moment=rep.residual_static_moment,
                                         iterations=rep.iterations, wall_s=rep.wall_time, polished=rep.polished,
                                         counterweight_mass=rep.counterweight_mass.tolist(),
-                                        counterweight_position=rep.counterweight_position.tolist()))
-    weights = np.logspace(-2, 4, 4 if args.quick else 9)
+                                        counterweight_position=rep.counterweight_position.tolist(),
+                                        extension_length=None if rep.extension_length is None
+                                        else rep.extension_length.tolist()))
+    weights = np.logspace(-2, 4, 2 if args.smoke else 4 if args.quick else 9)
     w, mass, coup, res = design.tradeoff_curve(cases[0][1], weights, steps=100, outer=2)
     record["tradeoff"] = dict(coupling_weight=w.tolist(), added_mass=mass.tolist(), residual_coupling=coup.tolist(),
                               residual_static_moment=res.tolist())
     st["load_average_end"] = load_average()
-    suffix = "_quick" if args.quick else ""
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / f"design{suffix}.json").write_text(json.dumps(record, indent=2) + "\n")
+    import pathlib
+
+    name = args.name or ("design_quick" if args.quick else "design")
+    out = pathlib.Path(args.out) if args.out else RESULTS
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{name}.json").write_text(json.dumps(record, indent=2) + "\n")
     import matplotlib
 
     matplotlib.use("Agg")
@@ -86,7 +106,7 @@ def main(argv=None):
     ax.set_xlabel("added counterweight mass [kg]")
     ax.set_ylabel("residual coupling max|M_ij|/sqrt(M_ii M_jj)")
     ax.set_title(f"3-link arm trade-off ({st['commit']}, jax {st['versions']['jax']})", fontsize=9)
-    fig.savefig(RESULTS / f"design{suffix}.png", dpi=110)
+    fig.savefig(out / f"{name}.png", dpi=110)
     md = ["# Balancing-design benchmark", "", stamp_markdown(st), "",
           "Wall times are warm runs (the first call, which compiles, is not timed). Coupling: largest "
           "max|M_ij|/sqrt(M_ii M_jj) over 32 random configurations (3x3 block norms of D for the spatial tree).", "",
@@ -95,8 +115,8 @@ def main(argv=None):
                          rows), "", "## Trade-off (3-link arm, penalty weight on |m̄|²)", "",
           markdown_table(["coupling weight", "added mass", "residual coupling", "residual |m̄| (rel.)"],
                          [[f"{a:.3g}", f"{b:.4f}", f"{c:.3e}", f"{d:.2e}"] for a, b, c, d in zip(w, mass, coup, res)]),
-          "", f"![trade-off](design{suffix}.png)", ""]
-    (RESULTS / f"design{suffix}.md").write_text("\n".join(md))
+          "", f"![trade-off]({name}.png)", ""]
+    (out / f"{name}.md").write_text("\n".join(md))
     print("\n".join(md))
 
 

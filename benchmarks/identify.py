@@ -1,6 +1,6 @@
 """Identification benchmark: recovered-parameter errors, iterations and wall time.
 
-    XLA_FLAGS=--xla_cpu_use_fusion_emitters=false python benchmarks/identify.py [--quick] [--spatial]
+    XLA_FLAGS=--xla_cpu_use_fusion_emitters=false python benchmarks/identify.py [--quick] [--spatial] [--smoke]
 
 Writes benchmarks/results/identify{_quick}.json and .md, stamped with commit, machine and
 command. Regressor identification of the Panda (noise-free and noisy torques, weighted least
@@ -8,7 +8,8 @@ squares with standard errors) and trajectory fitting through the integrator (dou
 with Levenberg-Marquardt, L-BFGS and Adam; three-link arm by single and multiple shooting; an 8 s
 chaotic double-pendulum record by single and multiple shooting; link lengths; the rolling disk's
 radius and mass; with --spatial also a spatial three-link arm with log-Cholesky inertias and
-damping under PD-tracking excitation). "LM" = Levenberg-Marquardt.
+damping under PD-tracking excitation). "LM" = Levenberg-Marquardt. ``--smoke`` (for the test
+suite): 100 Panda states and one short double-pendulum fit.
 """
 
 import argparse
@@ -26,6 +27,9 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="small sizes")
     p.add_argument("--spatial", action="store_true", help="also fit the spatial arm (slow)")
+    p.add_argument("--smoke", action="store_true", help="100 Panda states, one 1 s double-pendulum fit (tests)")
+    p.add_argument("--out", default=None, help="output folder (default benchmarks/results)")
+    p.add_argument("--name", default=None, help="record name (default identify or identify_quick)")
     args = p.parse_args(argv)
     st = stamp()
     import warnings
@@ -49,7 +53,7 @@ def main(argv=None):
     t_base = time.perf_counter() - t0
     pi = np.asarray(idf.parameters(panda))
     true = base.base(pi)
-    n = 200 if args.quick else 1000
+    n = 100 if args.smoke else 200 if args.quick else 1000
     t = np.linspace(0.0, 10.0, n)
     q, v, a = idf.excitation_trajectory(panda, t, seed=1)
     t0 = time.perf_counter()
@@ -114,8 +118,11 @@ def main(argv=None):
     quick = args.quick
     dp = jb.examples.double_pendulum()
     P = mc(dp)
+    if args.smoke:
+        fit_case("double pendulum 1 s, masses + CM, +-30 %", dp, P, x0_of(P, [1.3, 0.7], [0.7, 1.3]),
+                 planar_err(dp), tau2, 1.0, 11, jnp.array([0.3, -0.2]), "levenberg_marquardt", steps=30)
     for opt, steps in (("levenberg_marquardt", 40), ("lbfgs", 80), ("adam", 200 if quick else 500)):
-        if quick and opt == "adam":
+        if args.smoke or (quick and opt == "adam"):
             continue
         fit_case("double pendulum 1.5 s, masses + CM, +-30 %", dp, P, x0_of(P, [1.3, 0.7], [0.7, 1.3]),
                  planar_err(dp), tau2, 1.5, 31, jnp.array([0.3, -0.2]), opt, use_v=False, steps=steps)
@@ -124,12 +131,12 @@ def main(argv=None):
     cases = [(1, "levenberg_marquardt", 40), (2, "levenberg_marquardt", 40), (2, "lbfgs", 120)]
     if not quick:
         cases.insert(1, (1, "lbfgs", 250))
-    for segments, opt, steps in cases:
+    for segments, opt, steps in [] if args.smoke else cases:
         fit_case(f"3-link arm (vertical) 2 s, masses + CM, +-30 %, {segments} segment(s)", arm, P,
                  x0_of(P, [1.3, 0.7, 1.3], [0.7, 1.3, 0.7]), planar_err(arm), tau3, 2.0, 41,
                  jnp.array([0.4, 0.2, -0.3]), opt, segments=segments, steps=steps)
     P = mc(dp)
-    for segments, steps in ((1, 30), (8, 60)):
+    for segments, steps in () if args.smoke else ((1, 30), (8, 60)):
         fit_case(f"double pendulum 8 s, large swings (chaotic), +-30 %, {segments} segment(s)", dp, P,
                  x0_of(P, [1.3, 0.7], [0.7, 1.3]), planar_err(dp), tau2, 8.0, 161, jnp.array([2.0, -1.0]),
                  "levenberg_marquardt", segments=segments, steps=steps)
@@ -147,9 +154,11 @@ def main(argv=None):
         return float(max(np.abs(np.exp(np.asarray(res.variables["log_length"])) / L_true - 1).max(),
                          np.abs(np.exp(np.asarray(res.variables["log_mass"])) / m_true - 1).max()))
 
-    fit_case("double pendulum 1.5 s, link lengths (CM at mid-link) + masses, +-30 %", dpl, build_len,
-             {"log_length": jnp.log(L_true * np.array([1.3, 0.7])), "log_mass": jnp.log(m_true * np.array([0.7, 1.3]))},
-             len_err, tau2, 1.5, 31, jnp.array([0.3, -0.2]), "levenberg_marquardt", steps=30)
+    if not args.smoke:
+        fit_case("double pendulum 1.5 s, link lengths (CM at mid-link) + masses, +-30 %", dpl, build_len,
+                 {"log_length": jnp.log(L_true * np.array([1.3, 0.7])),
+                  "log_mass": jnp.log(m_true * np.array([0.7, 1.3]))},
+                 len_err, tau2, 1.5, 31, jnp.array([0.3, -0.2]), "levenberg_marquardt", steps=30)
 
     # rolling disk: radius and mass, with a known spin torque and push
     from jaxbody.examples import disk as dk
@@ -165,13 +174,14 @@ def main(argv=None):
     def disk_err(res):
         return float(max(abs(float(res.system.base.mass) / 2.0 - 1), abs(float(res.system.base.radius) / 0.3 - 1)))
 
-    fit_case("rolling disk 2 s, radius + mass, +-30 %", disk, Pd,
-             {"base.mass": xd["base.mass"] + np.log(1.3), "base.radius": xd["base.radius"] + np.log(0.7)},
-             disk_err, tau_d, 2.0, 21, jnp.array([0.0, 0.0, 0.0, 1.2, 0.0]), "levenberg_marquardt",
-             v0=jnp.array([0.4, -0.7, 5.0, -1.5, -0.3 * np.sin(1.2) * 0.4]), steps=30,
-             initial_state=lambda s, q, x: (q, jb.maggi.project_velocities(s, q, x)))
+    if not args.smoke:
+        fit_case("rolling disk 2 s, radius + mass, +-30 %", disk, Pd,
+                 {"base.mass": xd["base.mass"] + np.log(1.3), "base.radius": xd["base.radius"] + np.log(0.7)},
+                 disk_err, tau_d, 2.0, 21, jnp.array([0.0, 0.0, 0.0, 1.2, 0.0]), "levenberg_marquardt",
+                 v0=jnp.array([0.4, -0.7, 5.0, -1.5, -0.3 * np.sin(1.2) * 0.4]), steps=30,
+                 initial_state=lambda s, q, x: (q, jb.maggi.project_velocities(s, q, x)))
 
-    if args.spatial:
+    if args.spatial and not args.smoke:
         b = jb.ModelBuilder(gravity=(0, 0, -9.81), name="arm3")
         b.add_body("base", mass=2.0, com=(0.02, 0.01, 0.1), inertia=(0.02, 0.025, 0.01),
                    joints=[jb.Hinge(axis=(0, 0, 1), damping=0.3)])
@@ -206,9 +216,12 @@ def main(argv=None):
                  jnp.array([0.0, -0.3, 0.5]), "levenberg_marquardt", steps=80)
 
     st["load_average_end"] = load_average()
-    suffix = "_quick" if args.quick else ""
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / f"identify{suffix}.json").write_text(json.dumps(record, indent=2) + "\n")
+    import pathlib
+
+    name = args.name or ("identify_quick" if args.quick else "identify")
+    out = pathlib.Path(args.out) if args.out else RESULTS
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{name}.json").write_text(json.dumps(record, indent=2) + "\n")
     pd = record["panda"]
     md = ["# Identification benchmark", "", stamp_markdown(st), "", "## Panda, regressor and least squares", "",
           markdown_table(["quantity", "value"], [
@@ -226,7 +239,7 @@ def main(argv=None):
                            f"{f['wall_s']:.1f}",
                            f"{f['first_step_s']:.1f}", f"{f['loss0']:.2e}", f"{f['loss']:.2e}",
                            f"{f['max_rel_param_error']:.2e}"] for f in record["fits"]]), ""]
-    (RESULTS / f"identify{suffix}.md").write_text("\n".join(md))
+    (out / f"{name}.md").write_text("\n".join(md))
     print("\n".join(md))
 
 

@@ -130,3 +130,43 @@ def test_effects_benchmark_smoke(tmp_path):
     assert all(r["call_us"] > 0 and r["batched_us_per_state"] > 0 for r in rows)
     md = (tmp_path / "effects_rec.md").read_text()
     assert rec["stamp"]["commit"] in md and "| chain7 | planar |" in md
+
+
+def _run_small(script, tmp_path, *args, timeout=300):
+    env = dict(os.environ, PYTHONPATH=str(REPO), MPLBACKEND="Agg")
+    env.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    cmd = [sys.executable, str(BENCH / script), "--smoke", "--out", str(tmp_path), "--name", "rec", *args]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env, cwd=REPO)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    rec = json.loads((tmp_path / "rec.json").read_text())
+    md = (tmp_path / "rec.md").read_text()
+    assert rec["stamp"]["commit"] and rec["stamp"]["commit"] in md and rec["stamp"]["command"].endswith("--name rec")
+    return rec, md
+
+
+def test_design_benchmark_smoke(tmp_path):
+    rec, md = _run_small("design.py", tmp_path)
+    assert (tmp_path / "rec.png").stat().st_size > 0
+    methods = [c["method"] for c in rec["cases"]]
+    assert len(methods) == 3 and methods[0].startswith("closed form") and "link extensions" in methods[2]
+    for c in rec["cases"]:
+        assert c["system"].startswith("3-link arm") and c["bodies"] == [1, 2]
+        assert c["coupling_before"] > 0.1 and c["residual_coupling"] < 1e-10
+    # closed form and mass-penalised synthesis agree (3.15); extensions to twice the reach: 1.375
+    assert abs(rec["cases"][0]["added_mass"] - 3.15) < 1e-9 and abs(rec["cases"][1]["added_mass"] - 3.15) < 1e-6
+    assert abs(rec["cases"][2]["added_mass"] - 1.375) < 1e-6 and rec["cases"][2]["extension_length"] == [1.0, 0.3]
+    t = rec["tradeoff"]
+    assert len(t["coupling_weight"]) == 2 and t["residual_coupling"][1] < t["residual_coupling"][0]
+    assert "## Trade-off" in md and "link extensions" in md
+
+
+@pytest.mark.slow  # about 40 s on 2 busy cores (Panda's regressor compiles, one LM fit)
+def test_identify_benchmark_smoke(tmp_path):
+    rec, md = _run_small("identify.py", tmp_path)
+    pd = rec["panda"]
+    assert (pd["n_param"], pd["rank"], pd["n_states"]) == (90, 43, 100)
+    assert pd["noise_free_max_rel_error"] < 1e-8 and 0.5 < pd["noisy_mean_z2"] < 2.0
+    (fit,) = rec["fits"]
+    assert fit["optimizer"] == "levenberg_marquardt" and 0 < fit["iterations"] < 30
+    assert fit["loss"] < 1e-14 * fit["loss0"] and fit["max_rel_param_error"] < 1e-6
+    assert "| double pendulum 1 s, masses + CM, +-30 % | LM |" in md
