@@ -918,10 +918,11 @@ def _energies(system, q, x):
 MAX_RECORDED_REPARTITIONS = 16
 
 
-def _constrained_of(args):
+def _constrained_of(args, partitioned_only=True):
     """The automatically partitioned :class:`ConstrainedSystem` that a solve's ``args``
     evaluate (a :class:`jaxbody.Scene`, ``(scene, ...)`` or a system), bound to the scene's
-    model; ``None`` when there is none."""
+    model; ``None`` when there is none (``partitioned_only=False``: any constrained system
+    with constraints)."""
     from .scene import Scene
 
     obj = args[0] if isinstance(args, tuple) and args else args
@@ -930,7 +931,9 @@ def _constrained_of(args):
         cs = cs._on_model(obj.system) if isinstance(cs, ConstrainedSystem) else None
     else:
         cs = obj if isinstance(obj, ConstrainedSystem) else None
-    return cs if cs is not None and cs.partitioned else None
+    if cs is None or cs.n_constraint == 0:
+        return None
+    return cs if cs.partitioned or not partitioned_only else None
 
 
 def _is_system(node) -> bool:
@@ -965,6 +968,18 @@ def _partition_check(cs, t, q, x, sign):
     return degraded, c, best, cb
 
 
+#: codes of the solver state of :class:`PartitionSolver` (held as floats)
+_OK, _DEGRADED, _SINGULAR = 0.0, 1.0, 2.0
+
+
+def _parametrisation_singular(cs, t, q, x):
+    """Whether ``[E; G]`` of a system with user characteristics is singular at a state (the
+    pivot ratio of :meth:`ConstrainedSystem.parametrisation` at most :data:`SINGULAR_PIVOT`)."""
+    t, q, x = lax.stop_gradient((t, q, x))
+    _, _, ratio = cs.parametrisation(t, q, x)
+    return ~(ratio > SINGULAR_PIVOT)
+
+
 class PartitionSolver(DelegatingSolver):
     """A diffrax solver that keeps the coordinate partition of a constrained system while it
     is well conditioned and re-chooses it when it degrades (docs/maggi.md §4).
@@ -976,7 +991,11 @@ class PartitionSolver(DelegatingSolver):
     ``partition_tolerance`` times it, or changes sign (the step crossed a singular state),
     the next steps use the new partition (``repartition=True``) or the solve stops with a
     failed result that :func:`partition_report` reads as ``partition_degraded``
-    (``repartition=False``). The state ``(q, x)`` is never touched: ``ẋ`` does not depend on
+    (``repartition=False``). When ``G`` itself loses rank (no partition is regular: a dead
+    point of a linkage, redundant constraints), or, for a system with user characteristics
+    ``ε`` (``partitioned=False``: only this check runs), when ``[E; G]`` is singular at the
+    start or at the end of a step, the solve stops with a failed result that
+    :func:`partition_report` reads as ``singular_parametrisation``. The state ``(q, x)`` is never touched: ``ẋ`` does not depend on
     the partition, so the solution is the same continuous one; only ``A``, ``K`` and the
     meaning of ``ε`` change, at the recorded times. Rejected steps change nothing.
     The error estimate and step control are the wrapped solver's.
@@ -987,11 +1006,20 @@ class PartitionSolver(DelegatingSolver):
     """
 
     repartition: bool = eqx.field(static=True, default=True)
+    partitioned: bool = eqx.field(static=True, default=True)
 
     def init(self, terms, t0, t1, y0, args):
+        dtype = y0[1].dtype
+        t0 = jnp.asarray(t0, dtype)
+        if not self.partitioned:
+            cs = _constrained_of(args, partitioned_only=False)
+            bad = jnp.where(_parametrisation_singular(cs, t0, y0[0], y0[1]), _SINGULAR, _OK).astype(dtype)
+            times = jnp.full((MAX_RECORDED_REPARTITIONS,), jnp.nan, dtype)
+            zero = jnp.zeros((), dtype)
+            return self.inner.init(terms, t0, t1, y0, args), zero, zero, zero, times, bad
         cs = _constrained_of(args)
-        t0 = jnp.asarray(t0, y0[1].dtype)
         degraded, c, best, cb = _partition_check(cs, t0, y0[0], y0[1], jnp.zeros((), y0[1].dtype))
+        rank_lost = cb == 0
         times = jnp.full((MAX_RECORDED_REPARTITIONS,), jnp.nan, y0[1].dtype)
         if self.repartition:
             changed = degraded & jnp.any(best != cs.free)
@@ -999,22 +1027,34 @@ class PartitionSolver(DelegatingSolver):
             sign = jnp.sign(jnp.where(degraded, cb, c))
             times = jnp.where(changed, times.at[0].set(t0), times)
             count = changed.astype(jnp.int32)
-            bad = jnp.zeros((), bool)
+            bad = jnp.asarray(_OK, dtype)
         else:
-            free, sign, count, bad = cs.free, jnp.sign(c), jnp.zeros((), jnp.int32), degraded
+            free, sign, count = cs.free, jnp.sign(c), jnp.zeros((), jnp.int32)
+            bad = jnp.where(degraded, _DEGRADED, _OK).astype(dtype)
+        bad = jnp.where(rank_lost, _SINGULAR, bad).astype(dtype)
         inner = self.inner.init(terms, t0, t1, y0, _set_partition(args, free))
         # integers in the carried state are held as floats: an integer leaf that changes
         # inside diffrax's checkpointed loop makes every step markedly slower on CPU
-        return inner, free.astype(sign.dtype), sign, count.astype(sign.dtype), times, bad.astype(sign.dtype)
+        return inner, free.astype(sign.dtype), sign, count.astype(sign.dtype), times, bad
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         inner, free, sign, count, times, bad = solver_state
+        ok = lambda r: r == diffrax.RESULTS.successful
+        if not self.partitioned:
+            y1, err, dense, inner, result = self.inner.step(terms, t0, t1, y0, args, inner, made_jump)
+            cs = _constrained_of(args, partitioned_only=False)
+            t1 = jnp.asarray(t1, times.dtype)
+            bad = jnp.where(_parametrisation_singular(cs, t1, y1[0], y1[1]), _SINGULAR, bad).astype(bad.dtype)
+            result = diffrax.RESULTS.where((bad > 0) & ok(result), diffrax.RESULTS.singular, result)
+            return y1, err, dense, (inner, free, sign, count, times, bad), result
         dtype = sign.dtype
-        free, count, bad = free.astype(jnp.int32), count.astype(jnp.int32), bad > 0
+        free, count = free.astype(jnp.int32), count.astype(jnp.int32)
         args = _set_partition(args, free)
         y1, err, dense, inner, result = self.inner.step(terms, t0, t1, y0, args, inner, made_jump)
         t1 = jnp.asarray(t1, times.dtype)
         degraded, c, best, cb = _partition_check(_constrained_of(args), t1, y1[0], y1[1], sign)
+        # no regular partition at all: G lost rank (reported, whatever ``repartition`` says)
+        bad = jnp.where((bad == _OK) & (cb == 0), _SINGULAR, bad).astype(dtype)
         if self.repartition:
             changed = degraded & jnp.any(best != free)
             slot = jnp.minimum(count, MAX_RECORDED_REPARTITIONS - 1)
@@ -1023,11 +1063,10 @@ class PartitionSolver(DelegatingSolver):
             free = jnp.where(degraded, best, free)
             sign = jnp.sign(jnp.where(degraded, cb, c))
         else:
-            bad = bad | degraded
+            bad = jnp.where((bad == _OK) & degraded, _DEGRADED, bad).astype(dtype)
             sign = jnp.sign(c)
-            ok = result == diffrax.RESULTS.successful
-            result = diffrax.RESULTS.where(bad & ok, diffrax.RESULTS.singular, result)
-        return y1, err, dense, (inner, free.astype(dtype), sign, count.astype(dtype), times, bad.astype(dtype)), result
+        result = diffrax.RESULTS.where((bad > 0) & ok(result), diffrax.RESULTS.singular, result)
+        return y1, err, dense, (inner, free.astype(dtype), sign, count.astype(dtype), times, bad), result
 
 
 def partition_solver(solver, system, adjoint=None):
@@ -1035,23 +1074,25 @@ def partition_solver(solver, system, adjoint=None):
     :class:`ConstrainedSystem`) has constraints with an automatic partition; ``solver``
     itself otherwise, and under ``diffrax.BacksolveAdjoint`` (whose backward solve has
     another state: the partition is then the one given)."""
-    cs = _constrained_of(system)
+    cs = _constrained_of(system, partitioned_only=False)
     if cs is None or isinstance(adjoint, diffrax.BacksolveAdjoint):
         return solver
-    return PartitionSolver(solver, repartition=cs.repartitioning)
+    return PartitionSolver(solver, repartition=cs.repartitioning, partitioned=cs.partitioned)
 
 
 def partition_report(solver, solver_state) -> dict | None:
     """What a :class:`PartitionSolver` did in a solve, from the final solver state
     (``diffrax.SaveAt(solver_state=True)``): ``{"num_repartitions": int array,
     "repartition_times": (MAX_RECORDED_REPARTITIONS,) with NaN for unused slots,
-    "partition": the free quasi-velocities at the end, "degraded": bool}``; ``None`` for
-    other solvers."""
+    "partition": the free quasi-velocities at the end, "degraded": bool (the partition
+    degraded with re-partitioning off), "singular": bool (the parametrisation became
+    singular: ``G`` lost rank, or ``[E; G]`` of user characteristics is singular)}``;
+    ``None`` for other solvers."""
     if not isinstance(solver, PartitionSolver) or solver_state is None:
         return None
     _, free, _, count, times, bad = solver_state
-    return {"num_repartitions": count.astype(jnp.int32), "repartition_times": times,
-            "partition": free.astype(jnp.int32), "degraded": bad > 0}
+    return {"num_repartitions": count.astype(jnp.int32), "repartition_times": times if solver.partitioned else None,
+            "partition": free.astype(jnp.int32), "degraded": bad == _DEGRADED, "singular": bad == _SINGULAR}
 
 
 # ---------------------------------------------------------------------------------------
@@ -1139,7 +1180,9 @@ class PhasedSolution(eqx.Module):
     ``num_repartitions`` and ``repartition_times`` count and list the changes of coordinate
     partition inside the phases (the choice made at each switch is not counted); ``result``
     is :attr:`MaggiResult.partition_degraded` when a phase with ``repartition=False``
-    stopped on a degraded partition (the solution then ends there), else ``successful``.
+    stopped on a degraded partition, :attr:`MaggiResult.singular_parametrisation` when a
+    phase reached a state where its parametrisation is singular (the solution then ends
+    there), else ``successful``.
     ``v0_correction`` is ``x₀_projected − x₀`` when ``project_initial=True`` projected the
     initial velocities onto the first phase's constraints (zeros when they were admissible
     or not projected), as :func:`initial_state` returns it."""
@@ -1205,7 +1248,7 @@ def simulate_phases(
     t = float(t0)
     grid = np.linspace(t0, t1, n_save)
     ts, qs, vs, ph, lams, energies, reports, switch_t = [], [], [], [], [], [], [], []
-    n_rep, rep_times, degraded = 0, [], False
+    n_rep, rep_times, degraded, singular = 0, [], False, False
     q, x, v0_correction = initial_state(phases[0].system, q, x, t, project_initial=project_initial)
     for k, phase in enumerate(phases):
         system = phase.system
@@ -1231,10 +1274,12 @@ def simulate_phases(
         report = partition_report(solver, sol.solver_state)
         if report is not None:
             n_rep += int(report["num_repartitions"])
-            rt = np.asarray(report["repartition_times"])
-            rep_times.extend(rt[np.isfinite(rt)].tolist())
+            if report["repartition_times"] is not None:
+                rt = np.asarray(report["repartition_times"])
+                rep_times.extend(rt[np.isfinite(rt)].tolist())
             degraded = degraded or bool(report["degraded"])
-        if not degraded and not bool(np.asarray((sol.result == diffrax.RESULTS.successful) | (sol.result == diffrax.RESULTS.event_occurred))):
+            singular = singular or bool(report["singular"])
+        if not (degraded or singular) and not bool(np.asarray((sol.result == diffrax.RESULTS.successful) | (sol.result == diffrax.RESULTS.event_occurred))):
             raise RuntimeError(f"simulate_phases: phase {k} failed: {diffrax.RESULTS[sol.result]}")
         tt = np.asarray(sol.ts)
         q_all, x_all = np.asarray(sol.ys[0]), np.asarray(sol.ys[1])
@@ -1251,7 +1296,7 @@ def simulate_phases(
         lams.append(np.asarray(reactions(system, jnp.asarray(tt), jnp.asarray(q_all), jnp.asarray(x_all))))
         energies.append(np.asarray(_energies(system, jnp.asarray(q_all), jnp.asarray(x_all))))
         q, x, t = q_end, x_end, t_stop
-        if degraded or t >= float(t1) - 1e-14:
+        if degraded or singular or t >= float(t1) - 1e-14:
             break
     return PhasedSolution(
         t=jnp.asarray(np.concatenate(ts)),
@@ -1264,7 +1309,9 @@ def simulate_phases(
         switch_times=jnp.asarray(np.asarray(switch_t, dtype=np.float64)),
         num_repartitions=jnp.asarray(n_rep),
         repartition_times=jnp.asarray(np.asarray(rep_times, dtype=np.float64)),
-        result=MaggiResult.where(jnp.asarray(degraded), MaggiResult.partition_degraded, MaggiResult.successful),
+        result=MaggiResult.where(
+            jnp.asarray(singular), MaggiResult.singular_parametrisation,
+            MaggiResult.where(jnp.asarray(degraded), MaggiResult.partition_degraded, MaggiResult.successful)),
         v0_correction=v0_correction,
     )
 

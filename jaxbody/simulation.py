@@ -102,6 +102,11 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "The coordinate partition of the constraints degraded (quality below partition_tolerance times the "
         "best partition's) and re-partitioning is off (jaxbody.maggi.constrain(..., repartition=False))."
     )
+    singular_parametrisation = (
+        "The constraints cannot be solved for the velocities at this state (jaxbody.maggi.MaggiResult."
+        "singular_parametrisation): redundant constraints (a dead point of a linkage), or user characteristics "
+        "epsilon that are singular here."
+    )
 
 
 class SimulationError(RuntimeError):
@@ -1096,11 +1101,13 @@ def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps,
 def _partition_outcome(solver, sol, result):
     """``(num_repartitions, repartition_times, result)`` of a solve: what the
     :class:`jaxbody.maggi.PartitionSolver` did (zero and ``None`` for other solvers); a solve
-    it stopped on a degraded partition gets ``RESULTS.partition_degraded``."""
+    it stopped on a degraded partition gets ``RESULTS.partition_degraded``, one stopped on a
+    singular parametrisation ``RESULTS.singular_parametrisation``."""
     report = partition_report(solver, sol.solver_state)
     if report is None:
         return jnp.zeros((), jnp.int32), None, result
     result = RESULTS.where(report["degraded"], RESULTS.partition_degraded, result)
+    result = RESULTS.where(report["singular"], RESULTS.singular_parametrisation, result)
     return report["num_repartitions"], report["repartition_times"], result
 
 

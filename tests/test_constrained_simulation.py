@@ -200,6 +200,31 @@ def test_reverse_mode_gradient_through_repartitioning_solve():
     np.testing.assert_allclose(g, fd, rtol=1e-6)  # measured: 1e-9
 
 
+def test_singular_user_parametrisation_is_a_result_code_of_simulate():
+    """A user ε that is singular at a member's state (ε = horizontal velocity of a Cartesian
+    pendulum: no parametrisation when the rod is horizontal): jb.simulate_batch gives that
+    member RESULTS.singular_parametrisation and finishes the others; throw=True names it."""
+    L = 1.3
+    rod = maggi.VelocityConstraint(lambda b, t, q, x: (q @ x)[None] / L, size=1, label="rod",
+                                   position=lambda b, t, q: ((q @ q - L**2) / (2 * L))[None])
+    hanging = jnp.array([L * np.sin(0.3), -L * np.cos(0.3)])
+    cs = maggi.constrain(PointMass(jnp.asarray(0.7)), [rod], q_ref=hanging, epsilon=lambda b, t, q, x: x[:1])
+    assert not cs.partitioned
+    q0s = jnp.stack([hanging, jnp.array([L, 0.0])])  # the second starts horizontal
+    v0s = jnp.stack([jnp.array([np.cos(0.3), np.sin(0.3)]), jnp.array([0.0, -1.0])])
+    kw = dict(n_save=3, rtol=1e-10, atol=1e-10, throw=False)
+    batch = jb.simulate_batch(cs, q0s, v0s, 0.5, **kw)
+    assert int(batch.result._value[0]) == int(jb.RESULTS.successful._value)
+    assert int(batch.result._value[1]) == int(jb.RESULTS.singular_parametrisation._value)
+    assert "cannot be solved for the velocities" in jb.RESULTS._index_to_message[int(batch.result._value[1])]
+    # the good member is untouched by the bad one: the same as alone, and physical
+    one = jb.simulate(cs, q0s[0], v0s[0], 0.5, **kw)
+    np.testing.assert_allclose(batch.q[0], one.q, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(jnp.sum(batch.q[0] ** 2, axis=1), L**2, rtol=1e-9)
+    with pytest.raises(jb.SimulationError, match="cannot be solved for the velocities"):
+        jb.simulate(cs, q0s[1], v0s[1], 0.5, n_save=3)
+
+
 def test_example5_point_on_line_is_redundant_in_the_plane(ex5):
     """Example 5 (simulated through the slot in test_scene) written as a point on the vertical
     line: of its two rows, the one normal to the plane of motion is satisfied by the hinges
