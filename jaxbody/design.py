@@ -872,6 +872,17 @@ def balance(
             pass
     if ext is None:
         added = float(jnp.sum(mu))
+    res_final = float(np.max(np.linalg.norm(mbar1[req_idx], axis=1)) / scale)
+    if exact and res_final > 1e-8:
+        import warnings
+
+        warnings.warn(
+            f"balance: the required static moments did not vanish (residual |m̄| {res_final:.2e} relative)"
+            + ("; a counterweight on a link extension cancels only the static moment along its direction: "
+               "give extensions={'direction': ...} or use free positions" if ext is not None else
+               "; widen the bounds or raise steps/outer"),
+            RuntimeWarning, stacklevel=2,
+        )
     report = BalanceReport(
         bodies=req,
         counterweight_bodies=cw,
@@ -881,7 +892,7 @@ def balance(
         added_inertia=float(np.sum(np.asarray(_inertia_measure(out))) - np.sum(J)),
         static_moment_before=mbar0,
         static_moment_after=mbar1,
-        residual_static_moment=float(np.max(np.linalg.norm(mbar1[req_idx], axis=1)) / scale),
+        residual_static_moment=res_final,
         coupling_before=coupling(system, n_samples=n_samples, seed=seed),
         residual_coupling=coupling(out, n_samples=n_samples, seed=seed),
         iterations=it,

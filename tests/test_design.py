@@ -322,3 +322,39 @@ def test_cli_balance_optimise(capsys):
     assert "added mass 3.15," in opt and "coupling 7.747e-01 ->" in opt
     coupling_after = float(opt.split("-> ")[1].split()[0])
     assert coupling_after <= 1e-10
+
+
+def test_extension_along_the_link_cannot_cancel_an_off_axis_static_moment():
+    # forearm CM 0.1 off the link's line: the extension (backwards along the line to the
+    # hand's joint) cancels only m̄'s component along it; balance says so instead of
+    # returning a silently coupled design
+    import equinox as eqx
+
+    s = _arm()
+    s = eqx.tree_at(lambda x: x.body_com, s, s.body_com.at[1, 1].set(0.1))
+    with pytest.warns(RuntimeWarning, match="cancels only the static moment along its direction"):
+        _, rep = design.balance(s, penalty={"mass": 1.0, "inertia": 0.0}, extensions=True, steps=50, outer=3)
+    assert rep.residual_static_moment > 1e-3
+    # an extension opposite the forearm's m̄ = 1.5 · (0.25, 0.1) + 0.8 · (0.5, 0) (the hand's mass
+    # at its joint) balances it exactly
+    d1 = -np.array([1.5 * 0.25 + 0.8 * 0.5, 1.5 * 0.1])
+    _, rep = design.balance(s, bodies=["forearm"], penalty={"mass": 1.0, "inertia": 0.0},
+                            extensions={"direction": d1})
+    assert rep.residual_static_moment < 1e-12
+
+
+@pytest.mark.slow  # about 60 s on 2 busy cores (compiling the spatial synthesis)
+def test_spatial_extension_balances_the_ball_tree_hand():
+    model = _ball_tree()
+    hand = model.tree.names.index("hand")
+    lam = 0.2
+    out, rep = design.balance(model, bodies=["hand"], penalty={"mass": 1.0, "inertia": 0.0},
+                              extensions={"length": (0.0, 1.0), "density": lam})
+    # the hand's CM is its reach: the extension runs opposite it; leaf optimum as in the plane,
+    # e* = sqrt(2 |m̄| / λ) with |m̄| = 0.4 · |(0, 0.03, -0.08)|
+    md = 0.4 * np.hypot(0.03, 0.08)
+    # (the added mass is flat at e*, so e is pinned less tightly than the added mass)
+    np.testing.assert_allclose(rep.extension_length, [np.sqrt(2 * md / lam)], rtol=1e-4)
+    np.testing.assert_allclose(rep.added_mass, np.sqrt(2 * md * lam), rtol=1e-7)
+    assert np.linalg.norm(np.asarray(design.static_moments(out))[hand]) < 1e-12
+    jb.validate_parameters(out)
