@@ -75,6 +75,8 @@ def worker(cfg, rec):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         model = jb.from_mjcf(cfg["path"])
+    if cfg.get("kernel"):
+        model = jb.scene(model, kernel=cfg["kernel"])
     m = _mujoco_rigid(cfg["path"])
     q, v, _, _ = _states(m, 1, cfg["seed"])
     q0, v0 = jnp.asarray(q[0]), jnp.asarray(v[0])
@@ -186,7 +188,7 @@ def write_markdown(results, path):
     if results.get("note"):
         L += [f"**Note.** {results['note']}", ""]
     L += [f"Loss = |q(T)|² + |v(T)|² of `jb.simulate(..., solver=\"rk4\", dt0=1e-3, saveat=SaveAt(t1=True))`, "
-          f"T = {results['steps']} steps, float64. `checkpoint`/`backsolve`: `jax.grad` w.r.t. (q0, v0); "
+          f"T = {results['steps']} steps, float64, kernel {results.get('kernel') or 'default (vectorised)'}. `checkpoint`/`backsolve`: `jax.grad` w.r.t. (q0, v0); "
           f"`forward_mode`: `jax.jacfwd` w.r.t. {results['fwd_params']} offsets of q0. Time: warm median of the "
           "jitted call. Temp: XLA `memory_analysis().temp_size_in_bytes` of the compiled executable; peak RSS: the "
           "worker process's maximum resident memory (includes compilation and the Python/JAX runtime).", ""]
@@ -265,6 +267,8 @@ def parse_args(argv=None):
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--timeout", type=float, default=900.0, help="seconds per worker")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--kernel", choices=("auto", "native", "unrolled", "vectorised"),
+                   help="forward-dynamics kernel: jb.simulate(jb.scene(model, kernel=KERNEL), ...); default: the model itself")
     p.add_argument("--note", default="")
     p.add_argument("--models-dir", type=pathlib.Path, default=_common.REPO / "jaxbody" / "models")
     p.add_argument("--out", type=pathlib.Path, default=_common.RESULTS)
@@ -295,7 +299,8 @@ def main(argv=None):
     stamp = _common.stamp(sys.argv if argv is None else [sys.argv[0], *argv])
     args.out.mkdir(parents=True, exist_ok=True)
     results = {"stamp": stamp, "models": args.models, "modes": args.modes, "steps": args.steps, "dt": DT,
-               "horizon_factor": args.horizon_factor, "fwd_params": args.fwd_params, "note": args.note, "runs": {}}
+               "horizon_factor": args.horizon_factor, "fwd_params": args.fwd_params, "kernel": args.kernel,
+               "note": args.note, "runs": {}}
     t0 = time.perf_counter()
     me = str(pathlib.Path(__file__).resolve())
     md, js, png = (args.out / f"{args.name}.{ext}" for ext in ("md", "json", "png"))
@@ -304,7 +309,7 @@ def main(argv=None):
         for model in args.models:
             path = model_path(model, args.models_dir, tmp)
             for mode in args.modes:
-                cfg = dict(model=model, path=str(path), mode=mode, steps=args.steps, seed=args.seed,
+                cfg = dict(model=model, path=str(path), mode=mode, steps=args.steps, seed=args.seed, kernel=args.kernel,
                            min_time=args.min_time, repeats=args.repeats, fwd_params=args.fwd_params,
                            horizon_factor=args.horizon_factor)
                 rf = tmp / f"{model}-{mode}.json"

@@ -637,7 +637,7 @@ def parse_args(argv=None):
     p.add_argument("--max-work", type=int, default=200_000,
                    help="cap batch x steps of a timed call: steps = max(min_steps, min(steps, max_work // batch))")
     p.add_argument("--single-steps", type=int, default=1000, help="steps of the single-trajectory timing (T2)")
-    p.add_argument("--kernel", choices=("auto", "unrolled", "vectorised"),
+    p.add_argument("--kernel", choices=("auto", "native", "unrolled", "vectorised"),
                    help="forward-dynamics kernel of the jaxbody runs: jb.simulate(jb.scene(model, kernel=KERNEL), ...); "
                         "default: the model itself (jaxbody.kernels.DEFAULT_KERNEL)")
     p.add_argument("--chunk", type=int, default=256, help="batches above this run through jb.vmap_chunked(.., CHUNK)")

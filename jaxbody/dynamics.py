@@ -141,11 +141,13 @@ def forward_dynamics(
     *,
     external: Float[ArrayLike, "_n_body _six"] | None = None,
     include_passive: bool = False,
+    kernel: str | None = None,
 ) -> Float[Array, " nv"]:
     """Accelerations ``a = M⁻¹ (tau - bias + Jᵀ external [+ passive])``.
 
-    Runs :func:`jaxbody.kernels.acceleration` (the unrolled kernel for one state of a small
-    tree, the vectorised one for batches and large trees; the same numbers either way).
+    Runs :func:`jaxbody.kernels.acceleration` with ``kernel`` (``None``: the default,
+    vectorised unless ``$JAXBODY_KERNEL`` says otherwise; ``"auto"``: the native kernel where
+    it can be built, the fastest on CPU; the same numbers either way, docs/performance.md).
 
     ``include_passive=True`` adds the joint springs and dampers (as ``jb.simulate`` does for a
     model). Planar system: :func:`jaxbody.planar.forward_dynamics` (absolute angular
@@ -161,7 +163,7 @@ def forward_dynamics(
     if include_passive:
         passive = kernels.passive_forces_at(model, q, v)
         force = passive if force is None else force + passive
-    return kernels.acceleration(model, q, v, force, gravity=model.gravity, external=ext)
+    return kernels.acceleration(model, q, v, force, gravity=model.gravity, external=ext, kernel=kernel)
 
 
 def joint_reactions(

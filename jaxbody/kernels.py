@@ -32,6 +32,8 @@ Conventions (docs/conventions.md):
 """
 
 
+import os
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -50,7 +52,7 @@ from .kinematics import (
     reference_point,
     rigid_body_kinetic_energy,
 )
-from . import unrolled
+from . import native, unrolled
 from .joints import SLIDE
 from .linalg import solve_spd
 from .model import Model
@@ -333,13 +335,36 @@ def passive_forces_at(model: Model, q: Float[Array, " nq"], v: Float[Array, " nv
 
 # ----------------------------------------------------------------------------- kernel choice
 #: The forward-dynamics kernels :func:`acceleration` can run (see docs/performance.md).
-KERNELS = ("auto", "unrolled", "vectorised")
-#: What ``kernel=None`` means: the vectorised kernel, whose compile time and memory are flat in
-#: the tree's size and which does not care whether the model is a constant or a traced value.
-#: ``"auto"`` (the unrolled kernel for small trees) is opt-in: faster batches and, for a model
-#: the program closes over, faster single states, but compile times of 5-30 s
-#: (docs/performance.md).
-DEFAULT_KERNEL = "vectorised"
+KERNELS = ("auto", "native", "unrolled", "vectorised")
+#: What ``kernel=None`` means: ``$JAXBODY_KERNEL`` if set, else the vectorised kernel, whose
+#: compile time and memory are flat in the tree's size and which needs nothing but XLA.
+#: ``"auto"`` (the native kernel where it can be built: 5-20x faster per state, but the first
+#: use of each tree costs a C++ compilation of a few seconds, cached on disk) is opt-in.
+DEFAULT_KERNEL = os.environ.get("JAXBODY_KERNEL", "vectorised")
+
+
+def resolve_kernel(model: Model, kernel: str | None) -> str:
+    """The kernel :func:`acceleration` runs for ``model``: ``"native"``, ``"unrolled"`` or ``"vectorised"``.
+
+    ``"auto"``: the native kernel where :func:`jaxbody.native.applies` (a C++ compiler, the
+    CPU backend, at most :data:`jaxbody.native.MAX_DOFS` DoFs); on another backend the
+    unrolled kernel for trees within :data:`jaxbody.unrolled.MAX_BODIES`; else vectorised.
+    """
+    kernel = DEFAULT_KERNEL if kernel is None else kernel
+    if kernel not in KERNELS:
+        raise ValueError(f"kernel must be one of {KERNELS}, got {kernel!r}")
+    if kernel == "native" and not native.available():
+        raise RuntimeError(
+            "kernel='native' needs a C++17 compiler (g++ or $CXX) and the CPU backend; "
+            "use kernel='auto' (falls back to the vectorised kernel) or 'vectorised'"
+        )
+    if kernel != "auto":
+        return kernel
+    if native.applies(model):
+        return "native"
+    if jax.default_backend() != "cpu" and unrolled.applies(model):
+        return "unrolled"
+    return "vectorised"
 
 
 def _vectorised_acceleration(model: Model, q, v, force, gravity, external):
@@ -355,6 +380,10 @@ def _vectorised_acceleration(model: Model, q, v, force, gravity, external):
 
 def _unrolled_acceleration(model: Model, q, v, force, gravity, external):
     return unrolled.forward_dynamics(model, q, v, force, gravity=gravity, external=external)
+
+
+def _native_acceleration(model: Model, q, v, force, gravity, external):
+    return native.forward_dynamics(model, q, v, force, gravity=gravity, external=external)
 
 
 def acceleration(
@@ -378,15 +407,13 @@ def acceleration(
             ``None`` = zero.
         gravity: uniform acceleration field (world) acting on every body; ``None`` = none.
         external: ``(n_body, 6)`` world force and torque at each centre of mass.
-        kernel: ``"unrolled"`` (straight-line scalar program, :mod:`jaxbody.unrolled`),
-            ``"vectorised"`` (:class:`Data` and the kernels of this module) or ``"auto"``:
-            the unrolled kernel for trees up to :data:`jaxbody.unrolled.MAX_BODIES` bodies
-            and :data:`jaxbody.unrolled.MAX_DOFS` DoFs, the vectorised one for larger trees
-            (docs/performance.md: when each is faster). ``None``: :data:`DEFAULT_KERNEL`.
+        kernel: ``"native"`` (the tree compiled to machine code, :mod:`jaxbody.native`),
+            ``"unrolled"`` (straight-line scalar program in JAX, :mod:`jaxbody.unrolled`),
+            ``"vectorised"`` (:class:`Data` and the kernels of this module) or ``"auto"``
+            (:func:`resolve_kernel`; docs/performance.md: when each is faster). ``None``:
+            :data:`DEFAULT_KERNEL`.
     """
-    kernel = DEFAULT_KERNEL if kernel is None else kernel
-    if kernel not in KERNELS:
-        raise ValueError(f"kernel must be one of {KERNELS}, got {kernel!r}")
+    kernel = resolve_kernel(model, kernel)
     dtype = model.body_pos.dtype
     q = check_shape(q, (model.nq,), "q", dtype=dtype)
     v = check_shape(v, (model.nv,), "v", dtype=dtype)
@@ -397,6 +424,5 @@ def acceleration(
     if external is not None:
         external = check_shape(external, (model.n_body, 6), "external", dtype=dtype)
     args = (model, q, v, force, gravity, external)
-    if kernel == "vectorised" or (kernel == "auto" and not unrolled.applies(model)):
-        return _vectorised_acceleration(*args)
-    return _unrolled_acceleration(*args)
+    run = {"native": _native_acceleration, "unrolled": _unrolled_acceleration, "vectorised": _vectorised_acceleration}
+    return run[kernel](*args)

@@ -460,10 +460,10 @@ def scene(
         planar: ``None`` chooses the planar absolute-angle path when the model allows it;
             ``False`` forces the spatial path; ``True`` requires the planar path.
         kernel: forward-dynamics kernel of the spatial path (:func:`jaxbody.kernels.acceleration`):
-            ``None`` (:data:`jaxbody.kernels.DEFAULT_KERNEL`, the vectorised kernel), ``"auto"``
-            (the unrolled kernel for trees up to :data:`jaxbody.unrolled.MAX_BODIES` bodies,
-            the vectorised one above; ``solver="rk4"`` then writes its four stages out),
-            ``"unrolled"`` or ``"vectorised"``. docs/performance.md says when each is faster.
+            ``None`` (:data:`jaxbody.kernels.DEFAULT_KERNEL`, the vectorised kernel unless
+            ``$JAXBODY_KERNEL`` says otherwise), ``"auto"`` (the native kernel where it can be
+            built, :func:`jaxbody.kernels.resolve_kernel`), ``"native"``, ``"unrolled"`` or
+            ``"vectorised"``. docs/performance.md says when each is faster.
 
     Returns:
         The scene.

@@ -177,13 +177,12 @@ class RK4Stages(diffrax.AbstractSolver):
 
 
 def _runs_unrolled_kernel(scene) -> bool:
-    """Whether ``scene``'s vector field runs the unrolled forward-dynamics kernel."""
-    from . import unrolled
+    """Whether ``scene``'s vector field runs a straight-line forward-dynamics kernel (native or unrolled)."""
+    from .kernels import resolve_kernel
 
-    kernel = getattr(scene, "kernel", None)
-    if getattr(scene, "path", None) != "spatial" or kernel not in ("unrolled", "auto"):
+    if getattr(scene, "path", None) != "spatial" or not scene._direct():
         return False
-    return kernel == "unrolled" or unrolled.applies(scene.system)
+    return resolve_kernel(scene.system, getattr(scene, "kernel", None)) in ("native", "unrolled")
 
 
 class SemiImplicitEuler(diffrax.AbstractSolver):

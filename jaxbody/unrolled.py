@@ -52,7 +52,8 @@ from .model import Model
 
 __all__ = ["MAX_BODIES", "MAX_DOFS", "applies", "forward_dynamics", "mass_matrix", "bias_forces"]
 
-#: Largest tree (bodies, the world included) ``kernel="auto"`` gives the unrolled kernel; above
+#: Largest tree (bodies, the world included) ``kernel="auto"`` gives the unrolled kernel on a
+#: backend other than the CPU (on the CPU it gives the native kernel, :mod:`jaxbody.native`); above
 #: it the vectorised kernel of :mod:`jaxbody.kernels` runs (compile time flat in the number of
 #: bodies). Measured (docs/performance.md): for the 8-body Panda arm the unrolled RK4 step is
 #: about 4x faster than the vectorised one and its batches 2.5x faster; for the 13-body,
@@ -168,13 +169,22 @@ def _quat_matrix(w, x, y, z):
     )
 
 
+def _cos(a):
+    # symbolic scalars (the native kernel's code generator, jaxbody.native) carry their own
+    return a.cos() if getattr(a, "symbolic", False) else jnp.cos(a)
+
+
+def _sin(a):
+    return a.sin() if getattr(a, "symbolic", False) else jnp.sin(a)
+
+
 def _axis_angle(axis, angle):
     """Rodrigues' rotation about the unit ``axis`` by ``angle``: ``E + s[a]× + (1−c)[a]×²``.
 
     Written with ``[a]×² = a aᵀ − |a|² E`` as :func:`jaxbody.kinematics.axis_angle_matrix`
     is, so derivatives with respect to the axis agree with the vectorised kernel.
     """
-    c, s = jnp.cos(angle), jnp.sin(angle)
+    c, s = _cos(angle), _sin(angle)
     t = 1.0 - c
     x, y, z = axis
     n2 = x * x + y * y + z * z
@@ -232,7 +242,9 @@ def _spatial_dot(S, F):
 
 
 # ----------------------------------------------------------------------------- structure
-def _structure(model: Model):
+# The passes below take ``model`` unannotated: a Model, or the native kernel's code generator's
+# stand-in whose parameters are symbols (jaxbody.native._SymbolicModel).
+def _structure(model):
     """Static per-body joint lists and the DoF parent array ``λ`` (trace time, cached per tree)."""
     return _structure_of(model.joints, model.tree)
 
@@ -260,7 +272,7 @@ def _structure_of(joints, tree):
     return tuple(tuple(js) for js in body_joints), tuple(dof_parent)
 
 
-def _kinematics(model: Model, q: list):
+def _kinematics(model, q: list):
     """Body frames, DoF motions about ``c0``, centres of mass (scalar tuples), root to leaves."""
     joints = model.joints
     nb = model.n_body
@@ -332,7 +344,7 @@ def _kinematics(model: Model, q: list):
     return R, x, c0, S
 
 
-def _body_inertias(model: Model, R, x, c0):
+def _body_inertias(model, R, x, c0):
     """Spatial inertia ``(m, h, K)`` of every body about ``c0`` (world axes) and its CM."""
     out, com = [], []
     for b in range(model.n_body):
@@ -364,7 +376,7 @@ def _inertia_add(a, b):
     return (_add(a[0], b[0]), _vadd(a[1], b[1]), tuple(_add(x, y) for x, y in zip(a[2], b[2])))
 
 
-def _dof_owners(model: Model):
+def _dof_owners(model):
     """For each joint: its DoF indices, and for FREE joints the (translation, rotation) split."""
     joints = model.joints
     out = []
@@ -376,7 +388,7 @@ def _dof_owners(model: Model):
     return out
 
 
-def _bias_and_mass(model: Model, q, v, gravity, external, want_bias=True):
+def _bias_and_mass(model, q, v, gravity, external, want_bias=True):
     """Joint-space ``M`` (dict over the tree's nonzero lower triangle) and ``bias`` (list)."""
     joints = model.joints
     nb, nv = model.n_body, model.nv

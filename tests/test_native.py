@@ -1,0 +1,237 @@
+"""The native forward-dynamics kernel against MuJoCo and the vectorised kernel.
+
+The native kernel is the unrolled algorithm emitted as C++ for the model's tree and called
+through XLA's FFI (jaxbody/native.py). It is checked here against MuJoCo's ``mj_forward`` on
+the shipped robots (fixed and free base), against the vectorised kernel on seeded random MJCF
+trees with every joint kind, single and batched (nested ``vmap``, batches that are not a
+multiple of the SIMD width, unbatched inputs), with derivatives against finite differences,
+in float32, and inside ``jb.simulate``.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+from jaxpr_tools import count_eqns
+
+import jaxbody as jb
+from jaxbody import kernels, native
+
+pytestmark = pytest.mark.filterwarnings("ignore:from_mjcf")
+
+
+def _states(model, rng, batch):
+    q = np.asarray(model.qpos0) + 0.5 * rng.standard_normal((batch, model.nq))
+    q = jax.vmap(lambda x: jb.normalize_qpos(model, x))(jnp.asarray(q))
+    return q, jnp.asarray(rng.standard_normal((batch, model.nv)))
+
+
+def _mujoco_qacc(path, q, v, tau, ext):
+    """MuJoCo's rigid-body accelerations (contacts, constraints, passive forces, actuation off)."""
+    m = mujoco.MjModel.from_xml_path(str(path))
+    for flag in ("mjDSBL_CONTACT", "mjDSBL_CONSTRAINT", "mjDSBL_ACTUATION", "mjDSBL_SPRING", "mjDSBL_DAMPER", "mjDSBL_PASSIVE"):
+        if hasattr(mujoco.mjtDisableBit, flag):
+            m.opt.disableflags |= int(getattr(mujoco.mjtDisableBit, flag))
+    d = mujoco.MjData(m)
+    out = []
+    for i in range(q.shape[0]):
+        d.qpos[:], d.qvel[:], d.qfrc_applied[:] = q[i], v[i], tau[i]
+        d.xfrc_applied[1:] = ext[i]
+        mujoco.mj_forward(m, d)
+        out.append(d.qacc.copy())
+    return np.array(out)
+
+
+@pytest.mark.parametrize("name", ["panda", "ur5e", "anymal_c"])
+def test_native_equals_mujoco_on_the_shipped_robots(models_dir, name):
+    path = models_dir / f"{name}.xml"
+    model = jb.from_mjcf(str(path))
+    rng = np.random.default_rng(11)
+    q, v = _states(model, rng, 6)
+    tau = jnp.asarray(rng.standard_normal((6, model.nv)))
+    ext = jnp.asarray(rng.standard_normal((6, model.n_body, 6)))
+    fd = lambda kernel, e: jax.vmap(  # noqa: E731
+        lambda q, v, t, x: kernels.acceleration(model, q, v, t, gravity=model.gravity, external=x, kernel=kernel)
+    )(q, v, tau, e)
+    a_native = np.asarray(fd("native", ext))
+    a_ref = _mujoco_qacc(path, np.asarray(q), np.asarray(v), np.asarray(tau), np.asarray(ext))
+    assert np.max(np.abs(a_native - a_ref)) <= 1e-10 * np.abs(a_ref).max()
+    # without loads: a different generated program, the same numbers as the vectorised kernel
+    no_loads = lambda kernel: jax.vmap(  # noqa: E731
+        lambda q, v, t: kernels.acceleration(model, q, v, t, gravity=model.gravity, kernel=kernel)
+    )(q, v, tau)
+    a0, b0 = np.asarray(no_loads("native")), np.asarray(no_loads("vectorised"))
+    assert np.max(np.abs(a0 - b0)) <= 1e-11 * np.abs(b0).max()
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_native_on_random_trees_with_every_joint_kind(seed):
+    from mjcf_random import random_mjcf
+
+    model = jb.from_mjcf(random_mjcf(seed))
+    rng = np.random.default_rng(seed)
+    q, v = _states(model, rng, 5)
+    tau = jnp.asarray(rng.standard_normal((5, model.nv)))
+    run = lambda kernel: jax.vmap(  # noqa: E731
+        lambda q, v, t: kernels.acceleration(model, q, v, t, gravity=model.gravity, kernel=kernel)
+    )(q, v, tau)
+    a, b = run("native"), run("vectorised")
+    assert float(jnp.max(jnp.abs(a - b))) <= 1e-9 * float(jnp.max(jnp.abs(b)))
+
+
+def test_batches_single_states_and_nested_vmap(models_dir):
+    """One state, a batch of 103 (a partial SIMD block at the end), an unbatched ``q`` with a
+    batched ``v``, and parameters batched outside states: all equal the vectorised kernel."""
+    model = jb.from_mjcf(str(models_dir / "panda.xml"))
+    rng = np.random.default_rng(2)
+    q, v = _states(model, rng, 103)
+
+    def fd(kernel):
+        return lambda m, q, v: kernels.acceleration(m, q, v, -0.3 * v, gravity=m.gravity, kernel=kernel)
+
+    def close(x, y, tol=1e-11):
+        assert float(jnp.max(jnp.abs(x - y))) <= tol * float(jnp.max(jnp.abs(y)))
+
+    close(jax.jit(fd("native"))(model, q[0], v[0]), fd("vectorised")(model, q[0], v[0]))
+    batch = jax.jit(jax.vmap(fd("native"), in_axes=(None, 0, 0)))(model, q, v)
+    close(batch, jax.vmap(fd("vectorised"), in_axes=(None, 0, 0))(model, q, v))
+    shared_q = jax.vmap(fd("native"), in_axes=(None, None, 0))(model, q[0], v)
+    close(shared_q, jax.vmap(fd("vectorised"), in_axes=(None, None, 0))(model, q[0], v))
+    masses = model.body_mass * (1.0 + 0.2 * jnp.arange(3.0))[:, None]
+    nested = lambda kernel: jax.vmap(  # noqa: E731
+        lambda mass: jax.vmap(fd(kernel), in_axes=(None, 0, 0))(eqx.tree_at(lambda m: m.body_mass, model, mass), q[:9], v[:9])
+    )(masses)
+    out = nested("native")
+    assert out.shape == (3, 9, model.nv)
+    close(out, nested("vectorised"))
+    # the inner batch varies over the outer one (v batched inside, masses outside)
+    assert float(jnp.max(jnp.abs(out[0] - out[2]))) > 1e-3
+
+
+def test_gradients_match_finite_differences(models_dir):
+    model = jb.from_mjcf(str(models_dir / "ur5e.xml"))
+    rng = np.random.default_rng(7)
+    q, v = _states(model, rng, 1)
+    tau = jnp.asarray(rng.standard_normal(model.nv))
+
+    def fun(q, v, tau, mass):
+        m = eqx.tree_at(lambda m: m.body_mass, model, mass)
+        return kernels.acceleration(m, q, v, tau, gravity=model.gravity, kernel="native")
+
+    check_grads(fun, (q[0], v[0], tau, model.body_mass), order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6)
+    # reverse mode under vmap equals the vectorised kernel's
+    qs, vs = _states(model, rng, 6)
+    loss = lambda k: lambda q, v: jnp.sum(jnp.sin(kernels.acceleration(model, q, v, tau, gravity=model.gravity, kernel=k)))  # noqa: E731
+    g_n = jax.vmap(jax.grad(loss("native"), argnums=(0, 1)))(qs, vs)
+    g_v = jax.vmap(jax.grad(loss("vectorised"), argnums=(0, 1)))(qs, vs)
+    for x, y in zip(g_n, g_v):
+        assert float(jnp.max(jnp.abs(x - y))) <= 1e-10 * float(jnp.max(jnp.abs(y)))
+
+
+def test_program_size_does_not_grow_with_the_tree():
+    from random_models import hinge_chain
+
+    def size(n):
+        m = hinge_chain(n)
+        fn = lambda q, v: kernels.acceleration(m, q, v, kernel="native")  # noqa: E731
+        return count_eqns(jax.make_jaxpr(fn)(jnp.zeros(m.nq), jnp.zeros(m.nv)).jaxpr)
+
+    assert size(3) == size(24)
+
+
+def test_large_batch_and_a_nan_member(models_dir):
+    model = jb.from_mjcf(str(models_dir / "panda.xml"))
+    rng = np.random.default_rng(4)
+    q, v = _states(model, rng, 65536)
+    v = v.at[5].set(jnp.nan)
+    a = jax.jit(jax.vmap(lambda q, v: kernels.acceleration(model, q, v, gravity=model.gravity, kernel="native")))(q, v)
+    assert a.shape == (65536, model.nv)
+    assert bool(jnp.all(jnp.isnan(a[5])))
+    finite = jnp.isfinite(a).all(axis=1)
+    assert int(finite.sum()) == 65535
+    ref = jax.vmap(lambda q, v: kernels.acceleration(model, q, v, gravity=model.gravity, kernel="vectorised"))(q[-64:], v[-64:])
+    assert float(jnp.max(jnp.abs(a[-64:] - ref))) <= 1e-11 * float(jnp.max(jnp.abs(ref)))
+
+
+def test_float32_within_1e4_of_float64(models_dir):
+    import subprocess
+    import sys
+
+    code = f"""
+import warnings; warnings.simplefilter('ignore')
+import jax, jax.numpy as jnp, numpy as np
+import jaxbody as jb
+from jaxbody import kernels
+m = jb.from_mjcf({str(models_dir / 'panda.xml')!r})
+rng = np.random.default_rng(0)
+q = np.asarray(m.qpos0) + 0.4 * rng.standard_normal((8, m.nq)); v = rng.standard_normal((8, m.nv))
+f = jax.vmap(lambda q, v: kernels.acceleration(m, q, v, gravity=m.gravity, kernel='native'))
+a = f(jnp.asarray(q, jnp.float32), jnp.asarray(v, jnp.float32))
+assert a.dtype == jnp.float32 and bool(jnp.all(jnp.isfinite(a)))
+print(' '.join(repr(float(x)) for x in np.ravel(a)))
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    a32 = np.array([float(x) for x in out.stdout.split()]).reshape(8, -1)
+    model = jb.from_mjcf(str(models_dir / "panda.xml"))
+    rng = np.random.default_rng(0)
+    q = np.asarray(model.qpos0) + 0.4 * rng.standard_normal((8, model.nq))
+    v = rng.standard_normal((8, model.nv))
+    a64 = np.asarray(jax.vmap(lambda q, v: kernels.acceleration(model, q, v, gravity=model.gravity, kernel="vectorised"))(q, v))
+    assert np.max(np.abs(a32 - a64)) <= 1e-4 * max(1.0, np.abs(a64).max())
+
+
+def test_simulate_with_the_native_kernel_equals_the_vectorised_one(models_dir):
+    from jaxbody import simulation
+
+    model = jb.from_mjcf(str(models_dir / "panda.xml"))
+    fast, ref = jb.scene(model, kernel="auto"), jb.scene(model, kernel="vectorised")
+    assert kernels.resolve_kernel(model, "auto") == "native"
+    pick = lambda sc: simulation._solver("rk4", sc, jnp.float64, 1e-8, 1e-8, 1e-3, None)[0].solver  # noqa: E731
+    assert type(pick(fast)) is simulation.RK4Stages
+    q0 = model.qpos0 + 0.2
+    v0 = jnp.linspace(-1.0, 1.0, model.nv)
+    run = lambda sc, q: jb.simulate(sc, q, v0, 0.1, solver="rk4", dt0=1e-3, n_save=5)  # noqa: E731
+    a, b = run(fast, q0), run(ref, q0)
+    np.testing.assert_allclose(a.q, b.q, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(a.v, b.v, rtol=1e-11, atol=1e-11)
+    qs = q0 + 0.05 * jnp.arange(6.0)[:, None]
+    ba = jax.jit(jax.vmap(lambda q: run(fast, q).q))(qs)
+    bb = jax.vmap(lambda q: run(ref, q).q)(qs)
+    np.testing.assert_allclose(ba, bb, rtol=1e-12, atol=1e-12)
+
+
+def test_unavailable_native_kernel_is_a_clear_error_and_auto_falls_back(monkeypatch, tmp_path):
+    from random_models import hinge_chain
+
+    model = hinge_chain(2)
+    monkeypatch.setattr(native, "available", lambda: False)
+    with pytest.raises(RuntimeError, match="kernel='native' needs a C\\+\\+17 compiler"):
+        kernels.acceleration(model, jnp.zeros(2), jnp.zeros(2), kernel="native")
+    assert kernels.resolve_kernel(model, "auto") == "vectorised"
+    with pytest.raises(ValueError, match="kernel must be one of"):
+        kernels.resolve_kernel(model, "fast")
+    # a compiler that fails: the error shows the command and the compiler's message
+    monkeypatch.setenv("CXX", "false")
+    monkeypatch.setenv("JAXBODY_CACHE_DIR", str(tmp_path))
+    with pytest.raises(RuntimeError, match="building the native kernel failed"):
+        native._build("int x;", "probe")
+
+
+def test_sines_of_large_joint_angles():
+    """The kernel's vectorised sine/cosine (range reduction by π/2) at angles of many turns,
+    and libm's path beyond 1e5 rad, give the vectorised kernel's accelerations."""
+    from random_models import hinge_chain
+
+    model = hinge_chain(4)
+    rng = np.random.default_rng(9)
+    base = rng.uniform(-3.0, 3.0, (8, 4))
+    for offset in (0.0, 2.0e3 * np.pi + 0.3, 7.0e4, 3.0e5):
+        q = jnp.asarray(base + offset)
+        v = jnp.asarray(rng.standard_normal((8, 4)))
+        run = lambda kernel: jax.vmap(lambda q, v: kernels.acceleration(model, q, v, gravity=model.gravity, kernel=kernel))(q, v)  # noqa: E731
+        a, b = run("native"), run("vectorised")
+        assert float(jnp.max(jnp.abs(a - b))) <= 1e-10 * float(jnp.max(jnp.abs(b))), offset
