@@ -264,7 +264,7 @@ def worker_jaxbody(cfg, rec):
         def tsit5(model, q0, v0, tol):
             sol = jb.simulate(model, q0, v0, T, solver="tsit5", rtol=tol, atol=tol,
                               saveat=diffrax.SaveAt(t1=True), max_steps=cfg["tsit5_max_steps"], throw=False)
-            return sol.q[-1], sol.v[-1], sol.stats["num_steps"], sol.result == diffrax.RESULTS.successful
+            return sol.q[-1], sol.v[-1], sol.stats["num_steps"], sol.result == jb.RESULTS.successful
 
         g = jax.jit(jax.vmap(tsit5, in_axes=(None, 0, 0, None)))
         tols = (1e-10,) if x64 else TSIT5_TOLS

@@ -57,10 +57,11 @@ from .model import Model
 __all__ = ["MAX_DOFS", "applies", "available", "forward_dynamics", "parameter_vector", "threads"]
 
 #: Largest number of DoFs ``kernel="auto"`` gives the native kernel. The generated code grows
-#: with the number of mass-matrix entries on each DoF's ancestor chain (quadratic for a chain):
-#: a 30-link chain compiles in a few seconds, above that the vectorised kernel (whose program
+#: with the mass-matrix entries on each DoF's ancestor chain and their factorisation (for a
+#: chain, quadratically and cubically): the 7-DoF Panda arm compiles in about 4 s, a 20-link
+#: chain in about 25 s (once; cached on disk). Above this the vectorised kernel (whose program
 #: does not grow with the tree) serves.
-MAX_DOFS = 32
+MAX_DOFS = 24
 
 _lock = threading.Lock()
 

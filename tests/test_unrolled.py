@@ -67,6 +67,7 @@ def test_unrolled_on_random_trees_with_every_joint_kind(seed):
     assert float(jnp.max(jnp.abs(M_u - M_v))) <= 1e-12 * float(jnp.max(jnp.abs(M_v)))
 
 
+@pytest.mark.slow
 def test_unrolled_batches_and_derivatives_agree_with_the_vectorised_kernel(models_dir):
     """The unrolled kernel for one state and under vmap: values and derivatives agree with the
     vectorised kernel."""
@@ -149,6 +150,7 @@ def test_auto_threshold_and_bad_kernel_name():
         jb.scene(chain_model(2), kernel="fast")
 
 
+@pytest.mark.slow
 def test_rk4_writes_its_stages_out_for_the_unrolled_kernel():
     """``"rk4"`` on a scene that runs the unrolled kernel is :class:`RK4Stages` (stages written
     out); it gives the tableau RK4's trajectory and dense output, batched and single."""
