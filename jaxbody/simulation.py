@@ -813,6 +813,8 @@ def _simulate_scene(
         raise ValueError("give saveat or n_save, not both")
     if n_save is not None and n_save < 2:
         raise ValueError(f"n_save must be at least 2 (t0 and t1), got {n_save}")
+    adjoint = _adjoint(adjoint)
+    scene = _kernel_for_adjoint(scene, adjoint)
     solver_obj, controller = _solver(solver, scene, q0.dtype, rtol, atol, dt0, controller)
     if dt0 is not None:
         dt0 = jnp.asarray(dt0, q0.dtype)
@@ -937,6 +939,23 @@ def _traced_constraint_check(cs, t0, q0, v0):
         f"exceeds {_V0_ATOL:g}·max(1, max|v0|)); give admissible rates or pass project_initial=True"
     )
     return bad, msg
+
+
+def _kernel_for_adjoint(scene, adjoint):
+    """The scene to integrate with ``adjoint``: backsolve runs the vectorised kernel.
+
+    Known problem: ``BacksolveAdjoint``'s reverse-time solve returns wrong gradients when the
+    vector field runs the native kernel (``jax.vjp`` of one evaluation agrees with the
+    vectorised kernel's; the cause is not found yet), so such scenes fall back to the
+    vectorised kernel, which computes the same function.
+    """
+    if not isinstance(adjoint, diffrax.BacksolveAdjoint) or getattr(scene, "path", None) != "spatial":
+        return scene
+    from .kernels import resolve_kernel
+
+    if resolve_kernel(scene.system, scene.kernel) != "native":
+        return scene
+    return dataclasses.replace(scene, kernel="vectorised")
 
 
 def _adjoint(adjoint):
