@@ -237,6 +237,7 @@ def test_sines_of_large_joint_angles():
         assert float(jnp.max(jnp.abs(a - b))) <= 1e-10 * float(jnp.max(jnp.abs(b))), offset
 
 
+@pytest.mark.slow
 def test_backsolve_gradient_with_the_native_kernel_equals_the_checkpointed_one(models_dir):
     """``adjoint="backsolve"`` on a native-kernel scene integrates with the vectorised kernel
     (simulation._kernel_for_adjoint): its gradient agrees with the checkpointed one."""
