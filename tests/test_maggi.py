@@ -194,24 +194,7 @@ def test_bad_epsilon_is_rejected_at_build_time():
         maggi.constrain(base, [lambda t, q, x: x[0]], q_ref=q)
 
 
-class _Particle(maggi.QuasiVelocitySystem):
-    """A particle in a vertical plane (Cartesian coordinates = quasi-velocities)."""
-
-    mass: jax.Array
-    nq = 2
-    nv = 2
-
-    def kinetic_energy_rates(self, q, qd):
-        return 0.5 * self.mass * qd @ qd
-
-    def potential_energy(self, q):
-        return self.mass * 9.81 * q[1]
-
-    def qdot(self, q, x):
-        return x
-
-    def quasi_velocities(self, q, qd):
-        return qd
+from test_constrained_simulation import PointMass as _Particle  # noqa: E402  (one particle model for both files)
 
 
 def test_simulate_phases_reports_the_initial_velocity_correction():
