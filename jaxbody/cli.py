@@ -520,18 +520,20 @@ def _scene(src: _Source, args):
 
 
 # ------------------------------------------------------------------------------ simulate
-def _simulate_chunk(system, q, v, ts, args):
+def _simulate_chunk(system, q, v, ts, args, continued=False):
     """The one place the command calls the library's integrator.
 
     ``ts`` are the saved times of this chunk (``ts[0]`` its start). ``throw=False``: a failed
     solve comes back as a result code with ``inf`` after the failure, and the caller keeps
-    the finite part.
+    the finite part. A ``continued`` chunk starts from the end of the previous one, whose
+    velocities satisfy a scene's constraints only up to the integration error: they are
+    projected back onto them (a correction of that order) instead of being rejected.
     """
     import jaxbody as jb
 
     return jb.simulate(system, q, v, ts[-1], t0=ts[0], solver=args.solver, rtol=args.rtol,
                        atol=args.atol, dt0=args.dt, saveat=ts, max_steps=args.max_steps,
-                       throw=False)
+                       throw=False, project_initial=continued)
 
 
 def _result_message(result) -> str:
@@ -667,7 +669,7 @@ def _simulate(args) -> int:
         for k, (ts, n) in enumerate(chunks):
             ts_j = jnp.asarray(ts, dtype=q0.dtype)
             try:
-                sol = _simulate_chunk(scene, q, v, ts_j, args)
+                sol = _simulate_chunk(scene, q, v, ts_j, args, continued=k > 0)
             except (ValueError, TypeError) as e:
                 if k == 0:  # the integrator rejected the arguments before integrating
                     hint = " (give --dt)" if "dt0" in str(e) else ""
@@ -714,6 +716,9 @@ def _simulate(args) -> int:
           f"from {src.start}")
     own = ["gravity"] if scene.path == "system" and np.any(np.asarray(getattr(scene.system, "gravity", 0.0)) != 0) else []
     print(f"  effects         {', '.join(own + list(scene.effect_names)) or 'none'}")
+    loops = [spec.label for spec in getattr(src.system, "loops", ())]
+    if loops and scene.constraints is not None:
+        print(f"  constraints     loop closures {', '.join(loops)} (Maggi equations)")
     print(f"  integrated      t = 0 .. {t[-1] if len(t) else 0:g} s of {args.t1:g} s with {args.solver}, "
           f"rtol={args.rtol:g}, atol={args.atol:g}" + (f", dt={args.dt:g}" if args.dt else "")
           + f", in {len(chunks)} chunks")
@@ -1000,6 +1005,10 @@ def _effects(jb, src, scene):
         dofs = [] if dampers is None else np.nonzero(np.asarray(dampers.damping) != 0)[0]
         print(f"  joint dampers    {len(dofs)} DoFs" + (f" (v[{', '.join(map(str, dofs))}])" if len(dofs) else ""))
         print(f"  armature         {int(np.count_nonzero(np.asarray(model.dof_armature)))} DoFs")
+        if scene.constraints is not None:
+            rows = getattr(scene.constraints, "constraint_names", None) or ()
+            loops = [spec.label for spec in model.loops]
+            print(f"  constraints      {len(rows)} rows (Maggi): loop closures {', '.join(loops)}")
     elif src.kind == "embedded":
         print(f"  constraints      solved explicitly by {type(src.system).__name__} (coordinates "
               f"{', '.join(src.q_labels)})")

@@ -46,6 +46,7 @@ __all__ = [
     "body_point_velocity",
     "body_angular_velocity",
     "connect_constraints",
+    "loop_closures",
 ]
 
 
@@ -395,13 +396,86 @@ class PrescribedCoordinate(_OneRow):
         return (x[self.dof] - rate)[None]
 
 
+def loop_closures(model, *, axes="auto") -> tuple[LoopClosure, ...]:
+    """The loop closures a model carries (``model.loops``, from MJCF ``<connect>``) as
+    :class:`LoopClosure` constraints, in order and named after them.
+
+    ``axes="auto"`` keeps, for each loop, only the world directions in which the loop can open
+    at all: the left singular vectors of its 3 × nv velocity Jacobian, sampled at ``qpos0``
+    and at four random configurations, with non-negligible singular values. A loop of a
+    planar linkage thus keeps its two in-plane rows (the row across the plane vanishes
+    identically and would make the set redundant); a spatial loop keeps all three.
+    ``axes=None`` keeps all three; an array ``(k, 3)`` gives the directions for every loop.
+    This is what :func:`jaxbody.scene` applies by default. The MJCF importer finds the
+    directions once (``LoopSpec.axes``), so scenes of a model whose parameters are traced
+    (fitting, ``vmap`` over parameters) reuse them.
+    """
+    out = []
+    for spec in model.loops:
+        if isinstance(axes, str) and axes == "auto":
+            ax = spec.axes if spec.axes is not None else _independent_loop_axes(model, spec)
+        else:
+            ax = axes
+        out.append(LoopClosure(model, spec.body_a, spec.point_a, spec.body_b, spec.point_b, axes=ax,
+                               label=spec.label))
+    return tuple(out)
+
+
+def _independent_loop_axes(model, spec, n_random: int = 4, rtol: float = 1e-9):
+    """World directions a loop constrains (see :func:`loop_closures`)."""
+    from .identify import random_states
+
+    if isinstance(model.body_pos, jax.core.Tracer):
+        raise ValueError(
+            f"loop {spec.label!r}: its constrained directions are found from a concrete model; give them "
+            "(LoopSpec.axes, or loop_closures(model, axes=...)) when the model's parameters are traced"
+        )
+    dtype = model.body_pos.dtype
+    qs = [jnp.asarray(model.qpos0)]
+    if n_random:
+        qs += list(jnp.asarray(random_states(model, n_random, seed=0)[0], dtype))
+
+    def jac(q):
+        def rate(x):
+            return (body_point_velocity(model, q, x, spec.body_a, jnp.asarray(spec.point_a, dtype))
+                    - body_point_velocity(model, q, x, spec.body_b, jnp.asarray(spec.point_b, dtype)))
+
+        return jax.jacfwd(rate)(jnp.zeros(model.nv, dtype))
+
+    J = np.concatenate([np.asarray(jax.jit(jac)(q), np.float64) for q in qs], axis=1)  # (3, K·nv)
+    U, S, _ = np.linalg.svd(J)
+    keep = S > rtol * max(float(S[0]), np.finfo(np.float64).tiny)
+    if not np.any(keep):
+        raise ValueError(f"loop {spec.label!r}: its two points move together at every sampled configuration; "
+                         "it constrains nothing")
+    # the basis of that subspace closest to the world axes (Gram-Schmidt on the projected world
+    # axes, the longest first): world axes themselves when they span it (a loop in the x-z
+    # plane keeps x and z), so the reactions are world force components
+    basis = U[:, keep]
+    proj = basis @ basis.T  # projector on the constrained directions; its columns: projected e_i
+    order = np.argsort(-np.linalg.norm(proj, axis=0), kind="stable")
+    picked = []
+    for i in order:
+        u = proj[:, i] - sum((w @ proj[:, i]) * w for w in picked)
+        if np.linalg.norm(u) > 1e-6:
+            picked.append(u / np.linalg.norm(u))
+        if len(picked) == basis.shape[1]:
+            break
+    axes = np.stack([picked[k] for k in np.argsort([int(np.argmax(np.abs(w))) for w in picked], kind="stable")])
+    return np.where(np.abs(axes) < 1e-12, 0.0, axes)
+
+
 def connect_constraints(mj_model, model, *, axes=None, active_only: bool = True) -> tuple[LoopClosure, ...]:
     """Loop closures from the MJCF ``<equality><connect>`` constraints of a compiled model.
 
+    :func:`jaxbody.from_mujoco` already stores the active ones in ``model.loops`` and scenes
+    apply them (:func:`loop_closures`); this reads them again from the compiled model, for
+    connects inactive at start (``active_only=False``) or a model built another way.
+
     MuJoCo's connect constraint keeps an anchor point of ``body1`` on a point of ``body2``
-    (ball-joint loop closure); its compiled ``eq_data`` holds the anchor in both body frames.
-    Each becomes a :class:`LoopClosure` (``body1`` = body ``a``, so the reaction is the force
-    on ``body1``). Site-based connects are converted to their bodies' frames.
+    (ball-joint loop closure). Each becomes a :class:`LoopClosure` (``body1`` = body ``a``,
+    so the reaction is the force on ``body1``). Site-based connects are converted to their
+    bodies' frames.
 
     Args:
         mj_model: the compiled ``mujoco.MjModel`` (as passed to :func:`jaxbody.from_mujoco`)
@@ -416,26 +490,12 @@ def connect_constraints(mj_model, model, *, axes=None, active_only: bool = True)
     """
     import mujoco
 
+    from .io.mujoco import _compile, connect_loops
+
     m = mj_model
     if not isinstance(m, mujoco.MjModel):
-        from .io.mujoco import _compile
-
         m = _compile(m, "connect_constraints", "MJCF")
-    out = []
-    for i in range(int(m.neq)):
-        if int(m.eq_type[i]) != int(mujoco.mjtEq.mjEQ_CONNECT):
-            continue
-        if active_only and not bool(m.eq_active0[i]):
-            continue
-        data = np.asarray(m.eq_data[i], dtype=np.float64)
-        o1, o2 = int(m.eq_obj1id[i]), int(m.eq_obj2id[i])
-        if int(m.eq_objtype[i]) == int(mujoco.mjtObj.mjOBJ_SITE):
-            # anchors at the sites: their positions in their bodies' frames
-            b1, b2 = int(m.site_bodyid[o1]), int(m.site_bodyid[o2])
-            p1, p2 = np.asarray(m.site_pos[o1]), np.asarray(m.site_pos[o2])
-        else:
-            b1, b2 = o1, o2
-            p1, p2 = data[:3], data[3:6]
-        name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_EQUALITY, i) or f"connect{i}"
-        out.append(LoopClosure(model, b1 - 1, p1, b2 - 1, p2, axes=axes, label=name))
-    return tuple(out)
+    return tuple(
+        LoopClosure(model, s.body_a, s.point_a, s.body_b, s.point_b, axes=axes, label=s.label)
+        for s in connect_loops(m, active_only=active_only)
+    )

@@ -22,6 +22,7 @@ A :class:`Model` is itself a ``DynamicalSystem`` (``nq``, ``nv``, ``qdot``, ``ac
 """
 
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -32,7 +33,22 @@ from .joints import FREE, HINGE, JOINT_KIND_NAMES, JOINT_KINDS, SLIDE, JointLayo
 from .tree import BodyTree
 from .validation import validate_parameters
 
-__all__ = ["Model", "ModelBuilder", "validate_parameters"]
+__all__ = ["LoopSpec", "Model", "ModelBuilder", "validate_parameters"]
+
+
+class LoopSpec(NamedTuple):
+    """A loop closure a model carries (MJCF ``<equality><connect>``): the point ``point_a`` of
+    body ``body_a`` stays on the point ``point_b`` of body ``body_b`` (body frames; ``-1`` is
+    the world), along the world directions ``axes`` (``None``: found when a scene is built,
+    :func:`jaxbody.constraints.loop_closures`). Static and hashable; :func:`jaxbody.scene`
+    turns each into a :class:`jaxbody.constraints.LoopClosure`."""
+
+    label: str
+    body_a: int
+    point_a: tuple[float, float, float]
+    body_b: int
+    point_b: tuple[float, float, float]
+    axes: tuple[tuple[float, float, float], ...] | None = None
 
 
 class Model(eqx.Module):
@@ -57,6 +73,10 @@ class Model(eqx.Module):
     keyframe_qvel: Float[Array, "n_key nv"]
     keyframe_names: tuple[str, ...] = eqx.field(static=True, default=())
     name: str = eqx.field(static=True, default="model")
+    #: Loop closures that make the tree a closed mechanism (from MJCF ``<connect>``). The tree
+    #: dynamics (``forward_dynamics``, :meth:`acceleration`) ignore them; scenes impose them as
+    #: Maggi constraints (``jb.scene(model)``, ``jb.simulate(model, ...)``).
+    loops: tuple[LoopSpec, ...] = eqx.field(static=True, default=())
 
     @property
     def n_body(self) -> int:
@@ -134,9 +154,10 @@ class Model(eqx.Module):
         return kinetic_energy(self, data) + potential_energy(self, data)
 
     def __repr__(self):
+        loops = f", loops={len(self.loops)}" if self.loops else ""
         return (
             f"Model({self.name!r}: n_body={self.n_body}, n_joint={self.n_joint}, "
-            f"nq={self.nq}, nv={self.nv})"
+            f"nq={self.nq}, nv={self.nv}{loops})"
         )
 
 

@@ -424,7 +424,7 @@ def scene(
     actuation: Callable | Actuation | tuple | None = None,
     loads: Callable | BodyLoads | None = None,
     support: Callable | SupportMotion | None = None,
-    constraints: Any = None,
+    constraints: Any = "model",
     effects: Sequence[Effect] = (),
     planar: bool | None = None,
     kernel: str | None = None,
@@ -450,12 +450,16 @@ def scene(
             :class:`~jaxbody.effects.BodyLoads`.
         support: prescribed support translation ``s(t) -> (3,)`` or a
             :class:`~jaxbody.effects.SupportMotion`; the state is then relative to the support.
-        constraints: the Maggi layer: a :class:`jaxbody.maggi.ConstrainedSystem` built on this
+        constraints: the Maggi layer: ``"model"`` (the model's loop closures, ``model.loops``
+            from MJCF ``<connect>``, with their independent directions,
+            :func:`jaxbody.constraints.loop_closures`; none when it has none), ``None``/``False``
+            (none, loops left open), a :class:`jaxbody.maggi.ConstrainedSystem` built on this
             model (``jaxbody.maggi.constrain(model, [...], q_ref=...)``), or a sequence of
             :class:`jaxbody.maggi.Constraint` (e.g. from :mod:`jaxbody.constraints`), then
             built at ``q_ref = model.qpos0``; or any object with the
-            :class:`~jaxbody.effects.Constraint` protocol. A ``ConstrainedSystem`` passed as
-            ``system`` brings its own constraints.
+            :class:`~jaxbody.effects.Constraint` protocol. Given constraints replace the model's
+            loops; keep both with ``[*jaxbody.constraints.loop_closures(model), ...]``. A
+            ``ConstrainedSystem`` passed as ``system`` brings its own constraints.
         effects: further effect modules (contact, limits, ...), appended in order.
         planar: ``None`` chooses the planar absolute-angle path when the model allows it;
             ``False`` forces the spatial path; ``True`` requires the planar path.
@@ -501,6 +505,10 @@ def scene(
 
     model = system
     dtype = model.body_pos.dtype
+    if isinstance(constraints, str) and constraints == "model":
+        from .constraints import loop_closures
+
+        constraints = loop_closures(model) if model.loops else None
     constraints = _constraint_slot(model, constraints)
     # gravity
     if gravity is True or (isinstance(gravity, str) and gravity == "model"):
@@ -573,6 +581,13 @@ def _constraint_slot(model: Model, constraints):
     if isinstance(constraints, maggi.Constraint):
         constraints = (constraints,)
     if isinstance(constraints, (tuple, list)):
+        if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(model)):
+            raise ValueError(
+                "scene: constraints are checked and their coordinate partition chosen when the scene is "
+                "built, from concrete values; this model's parameters are traced (inside jit, vmap or grad). "
+                "Build the scene outside and change its parameters inside with "
+                "equinox.tree_at(lambda s: s.system.<field>, scene, value)"
+            )
         try:
             constraints = maggi.constrain(model, constraints, q_ref=model.qpos0)
         except ValueError as err:

@@ -551,3 +551,39 @@ def test_demo_writes_plot_trajectory_and_summary(tmp_path, capsys):
     assert float(rows[0]["t"]) == 0.0 and float(rows[-1]["t"]) == pytest.approx(0.5)
     assert (float(rows[0]["alpha1"]), float(rows[0]["alpha2"])) == (1.0, -0.5)
     assert [float(x) for x in summary["alpha_final"]] == [float(rows[-1]["alpha1"]), float(rows[-1]["alpha2"])]
+
+
+def _four_bar_file(tmp_path):
+    from test_constraints import four_bar_angles, four_bar_mjcf
+
+    xml = tmp_path / "fourbar.xml"
+    xml.write_text(four_bar_mjcf(four_bar_angles(0.6)))
+    return xml
+
+
+def test_info_lists_the_loops_of_an_mjcf_linkage(tmp_path, capsys):
+    assert main(["info", str(_four_bar_file(tmp_path))]) == 0
+    out = capsys.readouterr().out
+    assert "constraints      2 rows (Maggi): loop closures loop" in out
+    assert "content of the file that jaxbody does not model (ignored):\n  none" in out
+
+
+@pytest.mark.slow  # about 45 s: two compiles of the constrained spatial path
+def test_simulate_imposes_the_loops_of_an_mjcf_linkage(tmp_path, capsys):
+    """A four-bar closed by <connect>: `simulate` runs in chunks (each chunk's start projected
+    back onto the loop) with the loop staying closed."""
+    import jaxbody as jb
+
+    xml = _four_bar_file(tmp_path)
+    assert main(["simulate", str(xml), "--t1", "0.2", "--saves", "5", "--chunks", "2", "--no-progress",
+                 "--csv", str(tmp_path / "fb.csv")]) == 0
+    out = capsys.readouterr().out
+    assert "constraints     loop closures loop (Maggi equations)" in out
+    header, data = read_csv(tmp_path / "fb.csv")
+    assert data.shape[0] == 5
+    model = jb.from_mjcf(str(xml))
+    (loop,) = jb.constraints.loop_closures(model)
+    q = data[:, [header.index(f"q:{j}") for j in ("j1", "j2", "j3")]]
+    gap = [np.asarray(loop.axes @ (jb.constraints.body_point(model, qk, loop.body_a, loop.point_a)
+                                   - jb.constraints.body_point(model, qk, loop.body_b, loop.point_b))) for qk in q]
+    assert np.max(np.abs(gap)) < 1e-7 and np.ptp(q[:, 0]) > 1e-3  # it moved, and stayed closed

@@ -277,6 +277,7 @@ def test_singular_state_is_a_result_code_in_jit():
     assert int(res[1]) == int(maggi.MaggiResult.singular_parametrisation._value)
 
 
+@pytest.mark.slow  # 30 s; the rolling disk example (same constraint) is in test_disk
 def test_rolling_wheel_on_a_free_body_matches_the_disk_example():
     """A free rigid disk + PlaneContact + RollingContact reproduces the rolling disk of the
     paper (coordinates (x, y, ψ, θ, φ)): same accelerations, N and friction reactions."""
@@ -444,13 +445,17 @@ def test_mjcf_connect_imports_as_loop_closure_and_matches_mujoco():
     with warnings.catch_warnings(record=True) as rec:
         warnings.simplefilter("always")
         model = jb.from_mujoco(mj)
-    # the connect is not reported as ignored: the warning only says how to attach it
-    (msg,) = [str(w.message) for w in rec]
-    assert "ignored" not in msg and "1 <connect> loop closures ('loop')" in msg
-    assert "jaxbody.constraints.connect_constraints(mj_model, model)" in msg
+    assert not rec  # the connect is imported, nothing else is ignored: no warning
+    (spec,) = model.loops
+    assert spec.label == "loop" and (spec.body_a, spec.body_b) == (model.body_index("coupler"), model.body_index("rocker"))
+    np.testing.assert_allclose(spec.point_b, [L3, 0, 0], atol=1e-9)  # MuJoCo's anchor in the rocker frame
+    assert "loops=1" in repr(model)
+    # the model's loop, with its independent directions found automatically (the y row of a
+    # loop in the x-z plane vanishes identically), equals the explicit choice of axes
+    (auto,) = jc.loop_closures(model)
+    np.testing.assert_allclose(auto.axes, [[1, 0, 0], [0, 0, 1]], atol=1e-12)
     loops = jc.connect_constraints(mj, model, axes=[(1, 0, 0), (0, 0, 1)])
-    assert len(loops) == 1 and loops[0].names == ("loop[0]", "loop[1]")
-    np.testing.assert_allclose(loops[0].point_b, [L3, 0, 0], atol=1e-9)  # MuJoCo's anchor in the rocker frame
+    assert len(loops) == 1 and loops[0].names == ("loop[0]", "loop[1]") == auto.names
     q = jnp.asarray(mj.qpos0)
     np.testing.assert_allclose(q, 0.0)
     s = maggi.constrain(model, loops, q_ref=q)
@@ -461,6 +466,10 @@ def test_mjcf_connect_imports_as_loop_closure_and_matches_mujoco():
     ref = four_bar().solve(0.0, jnp.array([th[0], th[1] - th[0], th[2]]), v)
     np.testing.assert_allclose(r.xdot, ref.xdot, rtol=1e-10, atol=1e-10)
     np.testing.assert_allclose(r.reactions, ref.reactions, rtol=1e-10, atol=1e-10)
+    # the default scene of the imported model imposes the loop: same accelerations and force
+    a, _, lam = jb.scene(model).evaluate(0.0, q, v)
+    np.testing.assert_allclose(a, ref.xdot, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(lam, ref.reactions, rtol=1e-9, atol=1e-9)
     # MuJoCo with a stiff, nearly hard connect: same accelerations and pin force within its softness
     d = mujoco.MjData(mj)
     d.qpos[:] = np.asarray(q)
@@ -471,19 +480,86 @@ def test_mjcf_connect_imports_as_loop_closure_and_matches_mujoco():
     f_world = np.asarray(d.efc_force[:3])
     np.testing.assert_allclose(f_world[[0, 2]], r.reactions, rtol=1e-3)
     assert abs(f_world[1]) < 1e-9
+    # opting out leaves the loop open: the tree falls freely
+    open_scene = jb.scene(model, constraints=None)
+    assert open_scene.constraints is None and open_scene.path == "planar"
+
+
+
+@pytest.mark.slow  # about 20-30 s
+def test_loop_scene_parameters_change_inside_jit_and_grad():
+    """The importer stores each loop's directions; a scene is built once (its constraints are
+    checked and partitioned on concrete values) and its parameters change inside jit/grad:
+    ∂Λ/∂(link masses) through the loop equals central differences. Building a constrained
+    scene from a traced model says what to do instead."""
+    import warnings
+
+    import equinox as eqx
+
+    th = four_bar_angles(0.6)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = jb.from_mjcf(four_bar_mjcf(th))
+    assert model.loops[0].axes == ((1.0, 0.0, 0.0), (0.0, 0.0, 1.0))
+    sc = jb.scene(model)
+    q = model.qpos0
+    w = four_bar_rates(th, 1.5)
+    v = jnp.array([w[0], w[1] - w[0], w[2]])
+
+    def force(mass):
+        s = eqx.tree_at(lambda s: s.system.body_mass, sc, mass)
+        return s.evaluate(0.0, q, v)[2][1]
+
+    g = jax.jit(jax.grad(force))(model.body_mass)
+    h = 1e-6
+    fd = [(force(model.body_mass.at[i].add(h)) - force(model.body_mass.at[i].add(-h))) / (2 * h) for i in range(3)]
+    np.testing.assert_allclose(g, fd, rtol=1e-7, atol=1e-9)
+    assert np.all(np.abs(np.asarray(g)) > 1e-3)  # every link's mass loads the loop
+    with pytest.raises(ValueError, match=r"scene: constraints are checked .* traced .* equinox.tree_at"):
+        jax.jit(lambda m: jb.scene(m).evaluate(0.0, q, v)[0])(model)
+
+
+@pytest.mark.slow  # 30 s; test_mjcf_connect_imports_as_loop_closure_and_matches_mujoco checks the default scene of the imported model
+def test_imported_four_bar_simulates_closed_with_its_loop_force():
+    """`jb.simulate` on the imported model (no constraint written by the user): the loop stays
+    closed and the solution carries the loop force, as the builder-made linkage."""
+    import warnings
+
+    th = four_bar_angles(0.6)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # nothing is ignored
+        model = jb.from_mjcf(four_bar_mjcf(th))
+    w = four_bar_rates(th, 1.5)
+    v0 = jnp.array([w[0], w[1] - w[0], w[2]])
+    sol = jb.simulate(model, model.qpos0, v0, 0.3, rtol=1e-10, atol=1e-10, n_save=4)
+    assert sol.reactions.shape == (4, 2)
+    assert float(jnp.max(jnp.abs(sol.constraint_drift["position"]))) < 1e-8
+    ref = four_bar().solve(0.0, jnp.array([th[0], th[1] - th[0], th[2]]), v0)
+    np.testing.assert_allclose(sol.reactions[0], ref.reactions, rtol=1e-8)
+
+
+def test_inactive_and_disabled_connects_are_not_loops():
+    import warnings
+
+    th = four_bar_angles(0.6)
+    xml = four_bar_mjcf(th).replace('<connect name="loop"', '<connect name="loop" active="false"')
+    with pytest.warns(UserWarning, match=r"equality constraints other than active <connect> loops \(ignored\): 1 constraints \('loop'\)"):
+        model = jb.from_mjcf(xml)
+    assert model.loops == () and jb.scene(model).constraints is None
+    xml = four_bar_mjcf(th).replace('<flag contact="disable"/>', '<flag contact="disable" equality="disable"/>')
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert jb.from_mjcf(xml).loops == ()
 
 
 def test_cassie_style_loops_are_not_reported_as_ignored():
-    import mujoco
-
     th = four_bar_angles(0.6)
     xml = four_bar_mjcf(th).replace("</equality>", '<joint name="couple" joint1="j1" joint2="j3"/></equality>')
     with pytest.warns(UserWarning) as rec:
-        jb.from_mjcf(xml)
-    msg = str(rec[0].message)
-    ignored, note = msg.split("<connect>")
-    assert "1 constraints ('couple')" in ignored and "'loop'" not in ignored
-    assert "loop closures ('loop')" in note and "connect_constraints" in note
+        model = jb.from_mjcf(xml)
+    (msg,) = [str(w.message) for w in rec]
+    assert "1 constraints ('couple')" in msg and "'loop'" not in msg and "connect" in msg  # only the joint coupling
+    assert [spec.label for spec in model.loops] == ["loop"]
 
 
 def test_site_based_connect_and_scene_path():
@@ -506,7 +582,9 @@ def test_site_based_connect_and_scene_path():
     assert len(loops) == 1 and loops[0].body_a == model.body_index("coupler") and loops[0].body_b == model.body_index("rocker")
     np.testing.assert_allclose(loops[0].point_a, [L2, 0, 0], atol=1e-12)
     np.testing.assert_allclose(loops[0].point_b, [L3, 0, 0], atol=1e-12)
+    assert [spec.label for spec in model.loops] == ["loop"]
     sc = jb.scene(model, constraints=loops)  # checked at qpos0, the closed configuration
+    assert jb.scene(model).constraints is not None  # the default scene imposes the model's loop
     q = jnp.asarray(mj.qpos0)
     w = four_bar_rates(th, 1.5)
     v = jnp.array([w[0], w[1] - w[0], w[2]])
@@ -545,9 +623,10 @@ def test_spatial_ball_joint_loop_against_mujoco_connect():
     import mujoco
 
     mj = mujoco.MjModel.from_xml_string(SPATIAL_LOOP)
-    with pytest.warns(UserWarning, match=r"1 <connect> loop closures \('ring'\).*connect_constraints"):
-        model = jb.from_mujoco(mj)
+    model = jb.from_mujoco(mj)
     loops = jc.connect_constraints(mj, model)
+    (auto,) = jc.loop_closures(model)  # a spatial loop keeps all three directions
+    assert np.linalg.matrix_rank(np.asarray(auto.axes)) == 3 and auto.names == loops[0].names
     q = jnp.asarray(mj.qpos0)
     s = maggi.constrain(model, loops, q_ref=q)
     np.testing.assert_allclose(s.position_residual(0.0, q), 0.0, atol=1e-12)
@@ -569,8 +648,7 @@ def test_spatial_ball_joint_loop_stays_closed():
     import mujoco
 
     mj = mujoco.MjModel.from_xml_string(SPATIAL_LOOP)
-    with pytest.warns(UserWarning, match=r"1 <connect> loop closures \('ring'\).*connect_constraints"):
-        model = jb.from_mujoco(mj)
+    model = jb.from_mujoco(mj)
     q = jnp.asarray(mj.qpos0)
     s = maggi.constrain(model, jc.connect_constraints(mj, model), q_ref=q)
     v = maggi.project_velocities(s, q, jnp.asarray(np.random.default_rng(5).normal(size=9)))

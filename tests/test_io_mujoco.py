@@ -293,11 +293,14 @@ def test_strict_passes_on_rigid_models():
 def test_random_unsupported_features_listed():
     xml = _random_xml(7, rigid_only=False, n_body=8)
     m = mujoco.MjModel.from_xml_string(xml)
-    _, msg = _one_warning(jb.from_mjcf, xml)
+    model, msg = _one_warning(jb.from_mjcf, xml)
     assert "tendons (their stiffness, damping, limits, friction loss and actuation are ignored): 1 tendons ('t0')" in msg
     assert "actuators (" in msg and "1 actuators ('m0')" in msg
-    if m.neq:
-        assert "equality constraints (ignored; declare loop closures as jaxbody constraints): 1 constraints ('e0')" in msg
+    assert m.neq == 1
+    if int(m.eq_type[0]) == int(mujoco.mjtEq.mjEQ_CONNECT):  # imported as the model's loop closure
+        assert [spec.label for spec in model.loops] == ["e0"] and "'e0'" not in msg
+    else:
+        assert "equality constraints other than active <connect> loops (ignored): 1 constraints ('e0')" in msg
     if m.jnt_limited.any():
         assert "joint limits (ignored)" in msg
     with pytest.raises(ValueError, match=r"tendons"):

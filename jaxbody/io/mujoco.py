@@ -22,13 +22,17 @@ MuJoCo. The result compares one-to-one with MuJoCo (DESIGN.md):
   armature``/``damping`` on a hinge or slide joint transmission, scaled by ``gear²``) are
   folded into ``dof_armature``/``dof_damping``, as MuJoCo does in ``M`` and ``qfrc_passive``.
 
+* active ``<equality><connect>`` constraints become the model's loop closures
+  (``Model.loops``, :func:`connect_loops`); scenes impose them as Maggi constraints.
+
 Everything jaxbody does not model (contacts, joint limits, friction loss, tendons, equality
-constraints, actuator forces, fluid forces, gravity compensation, nonlinear or plastic
+constraints other than active connects, actuator forces, fluid forces, gravity compensation, nonlinear or plastic
 springs, flexes, plugins, mocap bodies) is reported in one ``UserWarning`` that names the
 elements, or raised as ``ValueError`` with ``strict=True``; see :func:`unsupported_features`.
 Features that MuJoCo has switched off with ``<option><flag .../>`` are not reported.
 """
 
+import dataclasses
 import os
 import pathlib
 import re
@@ -40,7 +44,7 @@ import numpy as np
 
 from ..joints import HINGE, JOINT_KIND_NAMES, SLIDE, JointLayout
 from .._util import quat_to_matrix
-from ..model import Model, validate_parameters
+from ..model import LoopSpec, Model, validate_parameters
 from ..tree import BodyTree
 
 __all__ = ["from_mjcf", "from_urdf", "from_mujoco", "unsupported_features"]
@@ -242,6 +246,16 @@ def _from_mujoco(mj_model, strict: bool, dtype, _caller: str) -> Model:
         _validate_mujoco_rules(model)
     except ValueError as e:
         raise ValueError(f"{where}: {e}") from None
+    loops = connect_loops(m)
+    if loops:  # the directions each loop constrains, found once here from the concrete model
+        from ..constraints import _independent_loop_axes
+
+        try:
+            loops = tuple(s._replace(axes=tuple(map(tuple, _independent_loop_axes(model, s).tolist()))) for s in loops)
+        except ValueError as e:
+            raise ValueError(f"{where}: {e}") from None
+        model = Model(**{f.name: getattr(model, f.name) for f in dataclasses.fields(model) if f.name != "loops"},
+                      loops=loops)
 
     issues = unsupported_features(m)
     if issues:
@@ -250,34 +264,44 @@ def _from_mujoco(mj_model, strict: bool, dtype, _caller: str) -> Model:
             raise ValueError(
                 f"{where} has features jaxbody does not model (strict=True):\n{lines}"
             )
-    note = _connect_note(m, where)
-    if issues or note:
-        head = f"{where} has features jaxbody does not model; they are ignored:\n{lines}" if issues else ""
+    if issues:
         warnings.warn(
-            "\n".join(x for x in (head, note) if x),
+            f"{where} has features jaxbody does not model; they are ignored:\n{lines}",
             UserWarning,
             stacklevel=4 if _caller != "from_mujoco" else 3,
         )
     return model
 
 
-def _connect_note(m, where) -> str | None:
-    """The import note on ``<equality><connect>`` loop closures: a Model is a tree, so they are
-    not part of it; :func:`jaxbody.constraints.connect_constraints` returns them."""
+def connect_loops(m, active_only: bool = True) -> tuple[LoopSpec, ...]:
+    """The ``<equality><connect>`` constraints of a compiled ``mujoco.MjModel`` as loop
+    closures (:class:`jaxbody.model.LoopSpec`, in MuJoCo's order, named after them).
+
+    MuJoCo's connect keeps an anchor point of ``body1`` on a point of ``body2``; its compiled
+    ``eq_data`` holds the anchor in both body frames (site-based connects: the sites'
+    positions in their bodies). Connects inactive at start (``eq_active0 = 0``) are skipped
+    unless ``active_only=False``; none are returned when the model disables equality
+    constraints (``<flag equality="disable"/>`` or ``constraint="disable"``).
+    """
     mujoco = _mujoco()
-    if int(m.opt.disableflags) & (int(mujoco.mjtDisableBit.mjDSBL_EQUALITY) | int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT)):
-        return None
-    ids = [i for i in range(int(m.neq)) if int(m.eq_type[i]) == int(mujoco.mjtEq.mjEQ_CONNECT)]
-    if not ids:
-        return None
-    names = ", ".join(repr(_name(m, mujoco.mjtObj.mjOBJ_EQUALITY, i) or f"connect{i}") for i in ids[:_MAX_NAMES])
-    more = f", ... and {len(ids) - _MAX_NAMES} more" if len(ids) > _MAX_NAMES else ""
-    return (
-        f"{where}: {len(ids)} <connect> loop closures ({names}{more}) are not part of the Model (a tree): "
-        "get them with jaxbody.constraints.connect_constraints(mj_model, model) and pass them to "
-        "jb.scene(model, constraints=...) (docs/maggi.md, 'Closed loops from MJCF'); without that "
-        "the loops stay open"
-    )
+    D = mujoco.mjtDisableBit
+    if int(m.opt.disableflags) & (int(D.mjDSBL_EQUALITY) | int(D.mjDSBL_CONSTRAINT)):
+        return ()
+    out = []
+    for i in range(int(m.neq)):
+        if int(m.eq_type[i]) != int(mujoco.mjtEq.mjEQ_CONNECT) or (active_only and not bool(m.eq_active0[i])):
+            continue
+        data = np.asarray(m.eq_data[i], dtype=np.float64)
+        o1, o2 = int(m.eq_obj1id[i]), int(m.eq_obj2id[i])
+        if int(m.eq_objtype[i]) == int(mujoco.mjtObj.mjOBJ_SITE):
+            b1, b2 = int(m.site_bodyid[o1]), int(m.site_bodyid[o2])
+            p1, p2 = np.asarray(m.site_pos[o1], np.float64), np.asarray(m.site_pos[o2], np.float64)
+        else:
+            b1, b2 = o1, o2
+            p1, p2 = data[:3], data[3:6]
+        name = _name(m, mujoco.mjtObj.mjOBJ_EQUALITY, i) or f"connect{i}"
+        out.append(LoopSpec(name, b1 - 1, tuple(float(x) for x in p1), b2 - 1, tuple(float(x) for x in p2)))
+    return tuple(out)
 
 
 def unsupported_features(mj_model) -> list[str]:
@@ -333,12 +357,13 @@ def unsupported_features(mj_model) -> list[str]:
                 f"explicit contact pairs (ignored): {len(ids)} pairs "
                 f"({listing(O.mjOBJ_PAIR, ids, num_fb('pair'))})"
             )
-    # <connect> equalities are loop closures: jaxbody.constraints.connect_constraints imports them
-    eq_other = [i for i in range(int(m.neq)) if int(m.eq_type[i]) != int(mujoco.mjtEq.mjEQ_CONNECT)]
+    # active <connect> equalities are loop closures the Model carries (connect_loops)
+    eq_other = [i for i in range(int(m.neq))
+                if int(m.eq_type[i]) != int(mujoco.mjtEq.mjEQ_CONNECT) or not bool(m.eq_active0[i])]
     if eq_other and not off(D.mjDSBL_EQUALITY, D.mjDSBL_CONSTRAINT):
         ids = eq_other
         out.append(
-            "equality constraints (ignored; declare loop closures as jaxbody constraints): "
+            "equality constraints other than active <connect> loops (ignored): "
             f"{len(ids)} constraints ({listing(O.mjOBJ_EQUALITY, ids, num_fb('equality'))})"
         )
     if int(m.ntendon):
