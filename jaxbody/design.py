@@ -1045,7 +1045,8 @@ def cli_balance(argv: Sequence[str] | None = None) -> int:
     ``--optimise``, the optimised one). Bad input: one line on stderr, exit status 2."""
     parser = _Parser(prog="jaxbody balance", description=cli_balance.__doc__.splitlines()[0])
     parser.add_argument("target", metavar="MODEL_OR_EXAMPLE",
-                        help=f"an MJCF file or one of {', '.join(sorted(_EXAMPLES))}")
+                        help=f"an MJCF file, one of {', '.join(sorted(_EXAMPLES))} or a shipped robot "
+                             "model (panda, ur5e, anymal_c)")
     parser.add_argument("--bodies", default=None, help="comma-separated bodies to decouple, or 'all'")
     parser.add_argument("--radius", type=float, default=None, help="counterweight distance from the joint")
     parser.add_argument("--optimise", action="store_true", help="also run the optax synthesis")
@@ -1060,18 +1061,24 @@ def cli_balance(argv: Sequence[str] | None = None) -> int:
 
         os.environ.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
         jax.config.update("jax_enable_x64", True)
-        if args.target in _EXAMPLES:
+        from .cli import MODELS_DIR, ROBOT_MODELS
+
+        path = pathlib.Path(args.target)
+        if args.target in _EXAMPLES and not path.exists():
             system = _EXAMPLES[args.target]()
-        elif pathlib.Path(args.target).is_file():
+        elif path.is_file() or (args.target in ROBOT_MODELS and not path.exists()):
             from .io.mujoco import from_mjcf
 
+            if not path.is_file():  # a robot model shipped with jaxbody
+                path = MODELS_DIR / f"{args.target}.xml"
             try:
-                system = from_mjcf(args.target)
+                system = from_mjcf(str(path))
             except Exception as err:  # the importer's message, on one line
                 raise _UsageError(f"cannot load {args.target}: {str(err).splitlines()[0]}") from None
         else:
             raise _UsageError(
-                f"{args.target!r} is neither a file nor an example ({', '.join(sorted(_EXAMPLES))})"
+                f"{args.target!r} is neither a file, an example ({', '.join(sorted(_EXAMPLES))}) nor a "
+                f"shipped robot model ({', '.join(ROBOT_MODELS)})"
             )
         bodies = None
         if args.bodies is not None:

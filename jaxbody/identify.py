@@ -81,6 +81,8 @@ __all__ = [
     "LeastSquaresFit",
     "least_squares",
     "excitation_trajectory",
+    "MeasuredStates",
+    "states_from_positions",
     "pseudo_inertia",
     "log_cholesky",
     "from_log_cholesky",
@@ -581,6 +583,84 @@ def excitation_trajectory(
     v = np.sum(A * cs + Bc * sn, axis=-1)
     a = np.sum(-A * w * sn + Bc * w * cs, axis=-1)
     return q, v, a
+
+
+class MeasuredStates(NamedTuple):
+    """Joint states estimated from measured positions (from :func:`states_from_positions`).
+
+    Attributes:
+        index: indices of the kept samples into the measured series, ``(m,)``.
+        t: their times, ``(m,)``.
+        q, v, a: smoothed positions and their first and second derivatives, ``(m, nv)``.
+    """
+
+    index: np.ndarray
+    t: np.ndarray
+    q: np.ndarray
+    v: np.ndarray
+    a: np.ndarray
+
+
+def states_from_positions(
+    t: Float[ArrayLike, " n"],
+    q: Float[ArrayLike, "n nv"],
+    window: float,
+    order: int = 4,
+    stride: int | None = None,
+) -> MeasuredStates:
+    """Positions, velocities and accelerations from noisy sampled joint positions.
+
+    Encoders measure positions only; the regressor also needs ``v`` and ``a``. Each sample is
+    replaced by the value and derivatives at its centre of a least-squares polynomial of degree
+    ``order`` fitted over ``window`` seconds of samples (a Savitzky–Golay filter, zero phase
+    lag). The half window at each end, where the filter extrapolates, is dropped, and only every
+    ``stride``-th sample is kept (default: one window apart): filtered samples closer than a
+    window share their measurements, so their errors are correlated, which the standard errors
+    of :func:`least_squares` assume they are not.
+
+    Use it when the acceleration noise the differentiation leaves, of order
+    ``σ_q / (window/2)²``, is small against the excitation's accelerations (about 1 %): beyond
+    that the regressor itself is noisy and the estimates are biased (errors in variables).
+
+    Args:
+        t: sample times, uniformly spaced, ``(n,)``.
+        q: measured joint positions (hinge and slide joints, ``nq = nv``), ``(n, nv)``.
+        window: length of the local fit in seconds (rounded to an odd number of samples,
+            at least ``order + 3``).
+        order: polynomial degree (at least 2, for accelerations).
+        stride: keep every ``stride``-th filtered sample.
+    """
+    from scipy.signal import savgol_filter
+
+    t = np.asarray(t, dtype=np.float64)
+    q = np.asarray(q, dtype=np.float64)
+    if t.ndim != 1 or t.shape[0] < 3:
+        raise ValueError(f"states_from_positions: t must be a 1-D series of at least 3 samples, got shape {t.shape}")
+    if q.ndim != 2 or q.shape[0] != t.shape[0]:
+        raise ValueError(f"states_from_positions: q has shape {q.shape}, expected ({t.shape[0]}, nv)")
+    if not np.all(np.isfinite(q)):
+        raise ValueError("states_from_positions: q contains NaN or infinite samples")
+    dt = np.diff(t)
+    if not np.all(dt > 0) or np.ptp(dt) > 1e-6 * dt.mean():
+        raise ValueError("states_from_positions: t must be increasing and uniformly spaced")
+    dt = float(dt.mean())
+    if int(order) < 2:
+        raise ValueError(f"states_from_positions: order must be at least 2 (accelerations), got {order}")
+    n_window = int(round(window / dt)) // 2 * 2 + 1
+    if n_window < order + 3:
+        raise ValueError(
+            f"states_from_positions: window {window} s holds {n_window} samples; a degree-{order} fit needs at "
+            f"least {order + 3}"
+        )
+    if n_window > t.shape[0]:
+        raise ValueError(f"states_from_positions: window {window} s is longer than the series ({t[-1] - t[0]} s)")
+    stride = n_window if stride is None else int(stride)
+    if stride < 1:
+        raise ValueError(f"states_from_positions: stride must be positive, got {stride}")
+    half = n_window // 2
+    index = np.arange(half, t.shape[0] - half, stride)
+    smooth = [savgol_filter(q, n_window, order, deriv=k, delta=dt, axis=0)[index] for k in range(3)]
+    return MeasuredStates(index, t[index], *smooth)
 
 
 # ------------------------------------------------------------------------- consistency

@@ -197,6 +197,10 @@ def test_closed_form_decouples_panda_and_cli_reads_mjcf(models_dir, capsys):
         assert design.cli_balance([str(models_dir / "panda.xml")]) == 0
     text = capsys.readouterr().out
     assert "link4" in text and "proposed design" in text and "nan" not in text
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert design.cli_balance(["panda"]) == 0  # the shipped model by name, as `jaxbody simulate panda`
+    assert capsys.readouterr().out == text
 
 
 # ------------------------------------------------------------------ link extensions
