@@ -94,6 +94,7 @@ def test_throughput_and_gradients_full_smoke(tmp_path):
     assert rec["runs"]["chain2"]["checkpoint"]["longer_horizon"]["steps"] == 40
 
 
+@pytest.mark.slow  # about 35 s: compiles the unrolled kernel; throughput.py's smoke test stays in the default suite
 def test_kernels_benchmark_smoke(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(REPO))
     env.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")

@@ -128,19 +128,21 @@ def test_gradients_wrt_parameters_match_finite_differences():
     model = random_model(7, n_body=4)
     q, v, _ = random_state(model, 18)
     tau = jnp.ones(model.nv)
-    for field in ("body_mass", "body_com", "body_inertia"):
-        x0 = getattr(model, field)
+    fields = ("body_mass", "body_com", "body_inertia")
+    x0 = tuple(getattr(model, f) for f in fields)
 
-        def fwd(x):
-            m = eqx.tree_at(lambda m_: getattr(m_, field), model, x)
-            return jb.forward_dynamics(m, q, v, tau)
+    def with_fields(xs):
+        return eqx.tree_at(lambda m_: tuple(getattr(m_, f) for f in fields), model, xs)
 
-        def mm(x):
-            m = eqx.tree_at(lambda m_: getattr(m_, field), model, x)
-            return jb.mass_matrix(m, q)
+    def fwd(*xs):
+        return jb.forward_dynamics(with_fields(xs), q, v, tau)
 
-        check_grads(jax.jit(mm), (x0,), order=1, modes=["rev"], eps=1e-6, atol=1e-5, rtol=1e-5)
-        check_grads(jax.jit(fwd), (x0,), order=1, modes=["rev", "fwd"], eps=1e-6, atol=1e-5, rtol=1e-5)
+    def mm(*xs):
+        return jb.mass_matrix(with_fields(xs), q)
+
+    # masses, centres of mass and inertias together (one compilation per derivative mode)
+    check_grads(jax.jit(mm), x0, order=1, modes=["rev"], eps=1e-6, atol=1e-5, rtol=1e-5)
+    check_grads(jax.jit(fwd), x0, order=1, modes=["rev", "fwd"], eps=1e-6, atol=1e-5, rtol=1e-5)
 
 
 def test_float32_matches_float64_within_float32_tolerance():

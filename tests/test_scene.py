@@ -362,6 +362,7 @@ def test_example4_pivot_moving_along_a_line_vs_spec():
     assert float(sol.energy_drift) < 1e-9 and float(jnp.max(jnp.abs(sol.work["support"]))) > 1e-3
 
 
+@pytest.mark.slow  # 20-28 s; Example 5 is checked against the spec in test_constraints and through scenes in test_constrained_simulation
 def test_example5_end_on_vertical_line_through_the_constraint_slot():
     m, a, L, ic, g = (1.0, 0.6), (0.4, 0.3), 0.8, (0.05, 0.02), 9.81
     model = pendulum_chain(m, a, (L, L), ic, g=g)
