@@ -448,21 +448,11 @@ def _independent_loop_axes(model, spec, n_random: int = 4, rtol: float = 1e-9):
     if not np.any(keep):
         raise ValueError(f"loop {spec.label!r}: its two points move together at every sampled configuration; "
                          "it constrains nothing")
-    # the basis of that subspace closest to the world axes (Gram-Schmidt on the projected world
-    # axes, the longest first): world axes themselves when they span it (a loop in the x-z
-    # plane keeps x and z), so the reactions are world force components
+    # world axes when they span those directions (a loop in the x-z plane keeps x and z), so the
+    # reactions are world force components; otherwise the singular vectors
     basis = U[:, keep]
-    proj = basis @ basis.T  # projector on the constrained directions; its columns: projected e_i
-    order = np.argsort(-np.linalg.norm(proj, axis=0), kind="stable")
-    picked = []
-    for i in order:
-        u = proj[:, i] - sum((w @ proj[:, i]) * w for w in picked)
-        if np.linalg.norm(u) > 1e-6:
-            picked.append(u / np.linalg.norm(u))
-        if len(picked) == basis.shape[1]:
-            break
-    axes = np.stack([picked[k] for k in np.argsort([int(np.argmax(np.abs(w))) for w in picked], kind="stable")])
-    return np.where(np.abs(axes) < 1e-12, 0.0, axes)
+    inside = [i for i in range(3) if np.linalg.norm(basis[i]) > 1.0 - 1e-9]
+    return np.eye(3)[inside] if len(inside) == basis.shape[1] else basis.T
 
 
 def connect_constraints(mj_model, model, *, axes=None, active_only: bool = True) -> tuple[LoopClosure, ...]:
