@@ -171,3 +171,16 @@ def test_identify_benchmark_smoke(tmp_path):
     assert fit["optimizer"] == "levenberg_marquardt" and 0 < fit["iterations"] < 30
     assert fit["loss"] < 1e-14 * fit["loss0"] and fit["max_rel_param_error"] < 1e-6
     assert "| double pendulum 1 s, masses + CM, +-30 % | LM |" in md
+
+
+def test_gradient_profile_smoke(tmp_path):
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    cmd = [sys.executable, str(BENCH / "gradient_profile.py"), "--kernels", "vectorised", "--min-time", "0.01",
+           "--out", str(tmp_path), "--name", "rec"]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env, cwd=REPO)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    rec = json.loads((tmp_path / "rec.json").read_text())
+    assert [r["piece"] for r in rec["rows"]] == ["forward", "jvp (value and tangent)", "vjp (value and cotangent)"]
+    assert all(r["us"] > 0 for r in rec["rows"]) and rec["rows"][0]["ratio"] == 1.0
+    assert "| vectorised | vjp (value and cotangent) |" in (tmp_path / "rec.md").read_text()
