@@ -401,8 +401,9 @@ def loop_closures(model, *, axes="auto") -> tuple[LoopClosure, ...]:
     :class:`LoopClosure` constraints, in order and named after them.
 
     ``axes="auto"`` keeps, for each loop, only the world directions in which the loop can open
-    at all: the left singular vectors of its 3 × nv velocity Jacobian, sampled at ``qpos0``
-    and at four random configurations, with non-negligible singular values. A loop of a
+    at all: the span of the left singular vectors of its 3 × nv velocity Jacobian, sampled at
+    ``qpos0`` and at four random configurations, with non-negligible singular values, given by
+    world axes when they span it (else by those singular vectors). A loop of a
     planar linkage thus keeps its two in-plane rows (the row across the plane vanishes
     identically and would make the set redundant); a spatial loop keeps all three.
     ``axes=None`` keeps all three; an array ``(k, 3)`` gives the directions for every loop.
