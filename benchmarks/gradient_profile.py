@@ -3,8 +3,9 @@ derivatives, per kernel, for a single state (issue 7, T3).
 
 A checkpointed gradient of an RK4 rollout evaluates, per stage, the forward dynamics once more
 (recomputation) and its linearisation and transpose (the vector-Jacobian product). This times
-each piece on one state of the Panda arm, jitted, for the native kernel (whose derivatives come
-from the vectorised kernel through its ``custom_jvp``) and the vectorised kernel:
+each piece on one state of the Panda arm, jitted, for the native kernel (whose derivatives with
+respect to the state are its generated forward- and reverse-mode programs) and the vectorised
+kernel:
 
     .venv/bin/python benchmarks/gradient_profile.py [--model panda] [--min-time 0.5]
 
@@ -85,8 +86,8 @@ def main(argv=None):
         stamp_markdown(rec["stamp"]),
         "",
         f"Model `{args.model}`, float64, jitted, one state; median of warm calls (dispatch included). "
-        "The native kernel's derivatives are the vectorised kernel's (its `custom_jvp`), so its jvp/vjp "
-        "rows are the vectorised kernel's derivative plus a native evaluation.",
+        "The native kernel's jvp/vjp rows are a native evaluation (the value) plus its generated "
+        "forward-mode (jvp) or reverse-mode (vjp) program, which runs the forward program again.",
         "",
         markdown_table(["kernel", "piece", "µs", "× forward of that kernel"], rows),
         "",

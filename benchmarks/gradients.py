@@ -14,8 +14,9 @@ process (so peak memory is that case's own):
 
 each with compile time, run time (median, warm), XLA's ``memory_analysis()`` of the compiled
 executable (temporary, argument and output bytes) and the worker's peak resident memory. The
-checkpointed gradient is compiled a second time for a 4× longer horizon to show whether its
-memory grows with the number of steps. The gradients of the three adjoints are compared with
+checkpointed gradient is compiled a second time for a 16× longer horizon to show whether its
+memory grows with the number of steps (jaxbody's default adjoint keeps a checkpoint per step
+up to a fixed memory budget, ``jaxbody.simulation.CHECKPOINT_BYTES``, then recomputes). The gradients of the three adjoints are compared with
 each other (a fast wrong gradient shows). Records ``benchmarks/results/<name>.{md,json,png}``
 (default ``gradients``), stamped; verdict for target T3 of issue 7 (gradient ≤ 3× the forward
 rollout, memory bounded).
@@ -260,7 +261,7 @@ def parse_args(argv=None):
     p.add_argument("--models", default="panda,chain20", help="comma-separated: panda, ur5e, anymal_c, chainN")
     p.add_argument("--modes", default=",".join(MODES), help=f"comma-separated subset of {', '.join(MODES)}")
     p.add_argument("--steps", type=int, default=1000, help="RK4 steps of the rollout (dt = 1e-3)")
-    p.add_argument("--horizon-factor", type=int, default=4,
+    p.add_argument("--horizon-factor", type=int, default=16,
                    help="also compile the reverse-mode gradients for this many times the horizon (memory only); 1 = off")
     p.add_argument("--fwd-params", type=int, default=4, help="parameters of the forward-mode jacfwd")
     p.add_argument("--min-time", type=float, default=0.5)

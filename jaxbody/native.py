@@ -24,10 +24,18 @@ How it plugs into JAX:
 * **Batches.** A :func:`jax.custom_batching.custom_vmap` rule turns ``vmap`` (nested or
   not) into one call over the stacked states; inputs that are not batched (the model under
   a ``vmap`` over states) are passed once and read with stride zero.
-* **Derivatives.** A :func:`jax.custom_jvp` rule takes the value from the native call and
-  the tangent from the vectorised JAX kernel (:mod:`jaxbody.kernels`), which computes the
-  same function: ``jvp``, ``grad`` (any adjoint) and higher derivatives work, with respect
-  to the state and to every model parameter.
+* **Derivatives.** The generated program is differentiated at build time too (on first
+  use): a forward-mode pass emits the tangent of every operation along ``(dq, dv, dτ)``
+  (:func:`_tangent_program`), a reverse-mode pass the adjoint of every value that depends on
+  the state, last operation first (:func:`_adjoint_program`); each is compiled like the
+  forward program. A :func:`jax.custom_jvp` rule takes the value from the native call and the
+  tangent along the state and force from a primitive that is linear in the tangents, runs
+  the forward-mode program, and transposes to the reverse-mode one (so ``jvp``/``jacfwd``
+  and ``grad``/``vjp``/``jacrev``, under ``vmap`` too, are native calls). Tangents of the
+  model's parameters, gravity and body loads come from the vectorised JAX kernel
+  (:mod:`jaxbody.kernels`), which computes the same function, as do the tangents of trees
+  above :data:`MAX_DERIVATIVE_DOFS`; second derivatives differentiate the same linear map
+  written in JAX on the unrolled kernel (:mod:`jaxbody.unrolled`).
 
 It needs a C++17 compiler (``g++``, or ``$CXX``) when a tree is first used; compiled
 kernels are cached in ``$JAXBODY_CACHE_DIR`` (default ``~/.cache/jaxbody``) under a hash of
@@ -50,6 +58,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.custom_derivatives import SymbolicZero
+from jax.extend.core import Primitive
+from jax.interpreters import ad, batching, mlir
 
 from . import unrolled
 from ._types import Array, ArrayLike, Float
@@ -69,32 +79,36 @@ _lock = threading.Lock()
 
 # ----------------------------------------------------------------------------- symbolic scalars
 class _Emitter:
-    """Collects the lines of one generated function and shares repeated expressions."""
+    """Collects the lines of one generated function and shares repeated expressions.
+
+    Besides the C++ lines it records the program as operations ``(outputs, kind, args)`` in
+    order, so that its derivatives can be generated from it (:func:`_tangent_program`,
+    :func:`_adjoint_program`).
+    """
 
     def __init__(self):
         self.lines: list[str] = []
         self.memo: dict[str, "_Sym"] = {}
+        self.ops: list[tuple] = []
 
-    def emit(self, expr: str) -> "_Sym":
+    def emit(self, expr: str, kind: str = "", args: tuple = ()) -> "_Sym":
         sym = self.memo.get(expr)
         if sym is None:
             name = f"t{len(self.lines)}"
             self.lines.append(f"const U {name} = {expr};")
             sym = self.memo[expr] = _Sym(name, self)
+            self.ops.append((sym, kind, args))
         return sym
 
-
-def _sincos(em, x):
-    key = f"sincos({x.name})"
-    pair = em.memo.get(key)
-    if pair is None:
-        n = len(em.lines)
-        em.lines.append(f"U s{n}, c{n}; sc({x.name}, s{n}, c{n});")
-        pair = em.memo[key] = (_Sym(f"s{n}", em), _Sym(f"c{n}", em))
-    return pair
-
-
-_Emitter.sincos = _sincos
+    def sincos(self, x):
+        key = f"sincos({x.name})"
+        pair = self.memo.get(key)
+        if pair is None:
+            n = len(self.lines)
+            self.lines.append(f"U s{n}, c{n}; sc({x.name}, s{n}, c{n});")
+            pair = self.memo[key] = (_Sym(f"s{n}", self), _Sym(f"c{n}", self))
+            self.ops.append((pair, "sincos", (x,)))
+        return pair
 
 
 def _lit(x) -> str:
@@ -120,7 +134,7 @@ class _Sym:
         x, y = _lit(a), _lit(b)
         if commutative and y < x:
             x, y = y, x
-        return self.em.emit(f"{x} {op} {y}")
+        return self.em.emit(f"{x} {op} {y}", op, (a, b))
 
     def __add__(self, o):
         if isinstance(o, float | int) and o == 0:
@@ -158,7 +172,7 @@ class _Sym:
         return self._bin("/", o, self, False)
 
     def __neg__(self):
-        return self.em.emit(f"-{self.name}")
+        return self.em.emit(f"-{self.name}", "neg", (self,))
 
     def cos(self):
         return self.em.sincos(self)[1]
@@ -176,7 +190,7 @@ class _SymbolicModel:
         self.tree, self.joints = tree, joints
         self.n_body, self.nv, self.nq = tree.n_body, joints.nv, joints.nq
         sizes = [int(np.prod(shape)) for shape in _field_shapes(tree, joints)]
-        p = _inputs(em, "p", sum(sizes))
+        p = _inputs(em, "p", sum(sizes), _SLOTS["p"])
         offset = 0
         for name, shape, size in zip(self.FIELDS, _field_shapes(tree, joints), sizes):
             syms = np.empty(size, dtype=object)
@@ -185,12 +199,19 @@ class _SymbolicModel:
             offset += size
 
 
-def _inputs(em: _Emitter, name: str, n: int) -> list:
-    """``n`` scalars of input ``name``, loaded (one lane per state) at the top of the block."""
+# the operands of every generated function, in order: the state and the model, then (for the
+# derivatives) the tangents of (q, v, f) or the cotangent of the acceleration
+_SLOTS = {"q": 0, "v": 1, "f": 2, "p": 3, "g": 4, "ext": 5, "dq": 6, "dv": 7, "df": 8, "ct": 6}
+
+
+def _inputs(em: _Emitter, name: str, n: int, slot: int) -> list:
+    """``n`` scalars of operand ``slot``, loaded (one lane per state) where they are emitted."""
     out = []
     for i in range(n):
-        em.lines.append(f"const U {name}_{i} = ld(in.{name}, in.s{name[0]}, {i});")
-        out.append(_Sym(f"{name}_{i}", em))
+        em.lines.append(f"const U {name}_{i} = ld({slot}, {i});")
+        sym = _Sym(f"{name}_{i}", em)
+        em.ops.append((sym, "input", (name,)))
+        out.append(sym)
     return out
 
 
@@ -211,19 +232,22 @@ def parameter_vector(model: Model) -> Float[Array, " n_param"]:
 _COMMON = r"""
 #include <cstdint>
 using T = @T@;
-// input x of state b: x + b * stride (rows of a (batch, n) array); stride 0 = shared by all states
+constexpr int MAX_IN = 16, MAX_OUT = 4;
+// operand k of state b: x[k] + b * s[k] (rows of a (batch, n) array; s = 0: shared by all
+// states); result j of state b: y[j] + b * n[j]
 struct Inputs {
-  const T *q, *v, *f, *p, *g, *ext;
-  int64_t sq, sv, sf, sp, sg, se;
+  const T* x[MAX_IN];
+  int64_t s[MAX_IN];
+  T* y[MAX_OUT];
+  int64_t n[MAX_OUT];
 };
-typedef void (*Range)(const Inputs*, int64_t, int64_t, T*);
+typedef void (*Range)(const Inputs*, int64_t, int64_t);
 """
 
 _KERNEL = r"""
 #include <cmath>
 #include <type_traits>
 @COMMON@
-constexpr int NV = @NV@;
 constexpr int W = 32 / sizeof(T);  // states per block: one AVX register of lanes
 typedef T V __attribute__((vector_size(sizeof(T) * W)));
 typedef std::conditional<sizeof(T) == 8, int64_t, int32_t>::type IntT;
@@ -287,25 +311,31 @@ static inline void vsincos(V x, V& s, V& c, int n) {
   sincos_lanes(x, s, c, n);
 }
 
-// forward dynamics of the states b0 .. b0 + n - 1 (n <= W); lane l is state b0 + min(l, n - 1)
-static void fd_block(const Inputs& in, int64_t b0, int n, T* __restrict out) {
+// the generated function of the states b0 .. b0 + n - 1 (n <= W); lane l is state b0 + min(l, n - 1)
+static void fd_block(const Inputs& in, int64_t b0, int n) {
   typedef V U;
   int64_t idx[W];
   for (int l = 0; l < W; ++l) idx[l] = b0 + (l < n ? l : n - 1);
-  auto ld = [&](const T* x, int64_t stride, int i) {
+  auto ld = [&](int k, int i) {
+    const T* x = in.x[k];
+    const int64_t s = in.s[k];
+    // an operand shared by all states (the model under a vmap over states), or a block of
+    // one state: one load broadcast to every lane; else one load per lane
+    if (s == 0) return U{} + x[i];
+    if (n == 1) return U{} + x[b0 * s + i];
     U r;
-    for (int l = 0; l < W; ++l) r[l] = x[idx[l] * stride + i];
+    for (int l = 0; l < W; ++l) r[l] = x[idx[l] * s + i];
     return r;
   };
-  auto st = [&](int i, U x) {
-    for (int l = 0; l < n; ++l) out[(b0 + l) * NV + i] = x[l];
+  auto st = [&](int j, int i, U x) {
+    for (int l = 0; l < n; ++l) in.y[j][(b0 + l) * in.n[j] + i] = x[l];
   };
   auto sc = [n](U x, U& s, U& c) { vsincos(x, s, c, n); };
 @BODY@
 }
 
-extern "C" void jaxbody_fd_range(const Inputs* in, int64_t b0, int64_t b1, T* out) {
-  for (int64_t b = b0; b < b1; b += W) fd_block(*in, b, b1 - b < W ? int(b1 - b) : W, out);
+extern "C" void jaxbody_range(const Inputs* in, int64_t b0, int64_t b1) {
+  for (int64_t b = b0; b < b1; b += W) fd_block(*in, b, b1 - b < W ? int(b1 - b) : W);
 }
 """
 
@@ -325,18 +355,18 @@ constexpr ffi::DataType DT = @DT@;
 // few hundred states).
 class Pool {
  public:
-  void run(Range range, const Inputs* in, int64_t batch, T* out, int64_t threads) {
+  void run(Range range, const Inputs* in, int64_t batch, int64_t threads) {
     std::lock_guard<std::mutex> call(call_);  // one batch at a time (XLA may call from several devices)
     grow(threads - 1);
     const int64_t chunk = (batch + threads - 1) / threads;
     {
       std::lock_guard<std::mutex> lock(m_);
-      range_ = range, in_ = in, out_ = out, batch_ = batch, chunk_ = chunk, slices_ = threads;
+      range_ = range, in_ = in, batch_ = batch, chunk_ = chunk, slices_ = threads;
       pending_ = threads - 1;
       ++generation_;
     }
     cv_.notify_all();
-    range(in, 0, chunk < batch ? chunk : batch, out);
+    range(in, 0, chunk < batch ? chunk : batch);
     std::unique_lock<std::mutex> lock(m_);
     done_.wait(lock, [&] { return pending_ == 0; });
   }
@@ -359,9 +389,8 @@ class Pool {
       const int64_t b0 = slot * chunk_, b1 = b0 + chunk_ < batch_ ? b0 + chunk_ : batch_;
       Range range = range_;
       const Inputs* in = in_;
-      T* out = out_;
       lock.unlock();
-      if (b0 < b1) range(in, b0, b1, out);
+      if (b0 < b1) range(in, b0, b1);
       lock.lock();
       if (--pending_ == 0) done_.notify_one();
     }
@@ -371,7 +400,6 @@ class Pool {
   std::vector<std::thread> workers_;
   Range range_ = nullptr;
   const Inputs* in_ = nullptr;
-  T* out_ = nullptr;
   int64_t batch_ = 0, chunk_ = 0, slices_ = 0, pending_ = 0;
   uint64_t generation_ = 0;
 };
@@ -381,63 +409,185 @@ static Pool* pool() {
   return p;
 }
 
-template <typename B>
-static int64_t stride(const B& x) {
-  auto d = x.dimensions();
-  return d[0] == 1 ? 0 : d[1];
-}
-
-static ffi::Error fd_impl(ffi::Buffer<DT> q, ffi::Buffer<DT> v, ffi::Buffer<DT> f, ffi::Buffer<DT> p,
-                          ffi::Buffer<DT> g, ffi::Buffer<DT> ext, ffi::ResultBuffer<DT> out,
-                          int64_t kernel, int64_t threads) {
+static ffi::Error fd_impl(ffi::RemainingArgs args, ffi::RemainingRets rets, int64_t kernel, int64_t threads) {
   const Range range = reinterpret_cast<Range>(kernel);
-  const int64_t batch = out->dimensions()[0];
-  const Inputs in{q.typed_data(), v.typed_data(), f.typed_data(), p.typed_data(), g.typed_data(),
-                  ext.typed_data(), stride(q), stride(v), stride(f), stride(p), stride(g), stride(ext)};
+  if (args.size() > MAX_IN || rets.size() > MAX_OUT || rets.size() == 0)
+    return ffi::Error(ffi::ErrorCode::kInvalidArgument, "jaxbody native kernel: too many operands");
+  Inputs in{};
+  for (size_t k = 0; k < args.size(); ++k) {
+    auto x = args.get<ffi::AnyBuffer>(k);
+    if (x.has_error()) return x.error();
+    if (x->element_type() != DT || x->dimensions().size() != 2)
+      return ffi::Error(ffi::ErrorCode::kInvalidArgument, "jaxbody native kernel: operands are 2-D, of the kernel's dtype");
+    in.x[k] = static_cast<const T*>(x->untyped_data());
+    in.s[k] = x->dimensions()[0] == 1 ? 0 : x->dimensions()[1];
+  }
+  int64_t batch = 0;
+  for (size_t j = 0; j < rets.size(); ++j) {
+    auto y = rets.get<ffi::AnyBuffer>(j);
+    if (y.has_error()) return y.error();
+    in.y[j] = static_cast<T*>((*y)->untyped_data());
+    batch = (*y)->dimensions()[0];
+    in.n[j] = (*y)->dimensions()[1];
+  }
   // one slice per thread for batches worth it (at least 64 states a slice)
   int64_t n = threads < batch / 64 ? threads : batch / 64;
-  if (n <= 1) range(&in, 0, batch, out->typed_data());
-  else pool()->run(range, &in, batch, out->typed_data(), n);
+  if (n <= 1) range(&in, 0, batch);
+  else pool()->run(range, &in, batch, n);
   return ffi::Error::Success();
 }
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(jaxbody_fd, fd_impl,
-                              ffi::Ffi::Bind()
-                                  .Arg<ffi::Buffer<DT>>()
-                                  .Arg<ffi::Buffer<DT>>()
-                                  .Arg<ffi::Buffer<DT>>()
-                                  .Arg<ffi::Buffer<DT>>()
-                                  .Arg<ffi::Buffer<DT>>()
-                                  .Arg<ffi::Buffer<DT>>()
-                                  .Ret<ffi::Buffer<DT>>()
-                                  .Attr<int64_t>("kernel")
-                                  .Attr<int64_t>("threads"));
+                              ffi::Ffi::Bind().RemainingArgs().RemainingRets().Attr<int64_t>("kernel").Attr<int64_t>("threads"));
 """
 
 _SCALAR = {np.dtype(np.float64): ("double", "ffi::F64"), np.dtype(np.float32): ("float", "ffi::F32")}
 
 
-def _generate(tree, joints, with_external: bool, dtype) -> str:
-    """C++ source of forward dynamics for this tree (parameters, gravity, loads as inputs)."""
+def _is_zero(x) -> bool:
+    return not isinstance(x, _Sym) and x == 0
+
+
+def _active(ops: list, seeds: set) -> set:
+    """Names of the program's values that depend on the inputs named in ``seeds``."""
+    active = set()
+    for out, kind, args in ops:
+        if kind == "input":
+            if args[0] in seeds:
+                active.add(out.name)
+        elif any(isinstance(a, _Sym) and a.name in active for a in args):
+            active.update(o.name for o in (out if kind == "sincos" else (out,)))
+    return active
+
+
+def _tangent_program(ops: list, seeds: dict) -> dict:
+    """Forward mode: the tangent of every value, emitted as code (zeros folded away).
+
+    ``seeds`` maps input names to their tangents; returns value name -> tangent (a symbol,
+    or ``0.0`` where the tangent is structurally zero).
+    """
+    tan = dict(seeds)
+
+    def d(a):
+        return tan.get(a.name, 0.0) if isinstance(a, _Sym) else 0.0
+
+    for out, kind, args in ops:
+        if kind == "input":
+            continue
+        ds = [d(a) for a in args]
+        if all(_is_zero(x) for x in ds):
+            continue
+        if kind == "+":
+            t = ds[0] + ds[1]
+        elif kind == "-":
+            t = ds[0] - ds[1]
+        elif kind == "neg":
+            t = -ds[0]
+        elif kind == "*":
+            t = ds[0] * args[1] + args[0] * ds[1]
+        elif kind == "/":
+            num = ds[0] - out * ds[1]
+            t = 0.0 if _is_zero(num) else num / args[1]
+        elif kind == "sincos":
+            s, c = out
+            tan[s.name], tan[c.name] = c * ds[0], -(s * ds[0])
+            continue
+        else:
+            raise AssertionError(f"no tangent rule for {kind!r}")
+        tan[out.name] = t
+    return tan
+
+
+def _adjoint_program(ops: list, active: set, seeds: list) -> dict:
+    """Reverse mode: the adjoint of every active value, emitted as code, last operation first.
+
+    ``seeds``: ``(value, cotangent)`` pairs; returns value name -> adjoint.
+    """
+    adj: dict = {}
+
+    def acc(a, g):
+        if isinstance(a, _Sym) and a.name in active and not _is_zero(g):
+            adj[a.name] = adj[a.name] + g if a.name in adj else g
+
+    for value, ct in seeds:
+        acc(value, ct)
+    for out, kind, args in reversed(ops):
+        if kind == "input":
+            continue
+        if kind == "sincos":
+            s, c = out
+            gs, gc = adj.get(s.name, 0.0), adj.get(c.name, 0.0)
+            acc(args[0], gs * c - gc * s)
+            continue
+        g = adj.get(out.name)
+        if g is None:
+            continue
+        if kind == "+":
+            acc(args[0], g)
+            acc(args[1], g)
+        elif kind == "-":
+            acc(args[0], g)
+            if isinstance(args[1], _Sym) and args[1].name in active:
+                acc(args[1], -g)
+        elif kind == "neg":
+            acc(args[0], -g)
+        elif kind == "*":
+            for a, b in ((args[0], args[1]), (args[1], args[0])):
+                if isinstance(a, _Sym) and a.name in active:
+                    acc(a, g * b)
+        elif kind == "/":
+            gy = g / args[1]
+            acc(args[0], gy)
+            if isinstance(args[1], _Sym) and args[1].name in active:
+                acc(args[1], -(gy * out))
+        else:
+            raise AssertionError(f"no adjoint rule for {kind!r}")
+    return adj
+
+
+def _generate(tree, joints, with_external: bool, dtype, mode: str = "fd") -> str:
+    """C++ source of forward dynamics for this tree (parameters, gravity, loads as inputs).
+
+    ``mode``: ``"fd"`` the acceleration; ``"jvp"`` its directional derivative along tangents
+    ``(dq, dv, df)`` of the state and force (forward mode on the generated program);
+    ``"vjp"`` the cotangents of ``(q, v, f)`` for a cotangent of the acceleration (reverse mode).
+    """
     em = _Emitter()
     model = _SymbolicModel(tree, joints, em)
-    q = _inputs(em, "q", joints.nq)
-    v = _inputs(em, "v", joints.nv)
-    f = _inputs(em, "f", joints.nv)
-    g = tuple(_inputs(em, "g", 3))
+    q = _inputs(em, "q", joints.nq, _SLOTS["q"])
+    v = _inputs(em, "v", joints.nv, _SLOTS["v"])
+    f = _inputs(em, "f", joints.nv, _SLOTS["f"])
+    g = tuple(_inputs(em, "g", 3, _SLOTS["g"]))
     ext = None
     if with_external:
-        flat = _inputs(em, "ext", 6 * tree.n_body)
+        flat = _inputs(em, "ext", 6 * tree.n_body, _SLOTS["ext"])
         ext = [tuple(flat[6 * b : 6 * b + 6]) for b in range(tree.n_body)]
     M, bias, lam = unrolled._bias_and_mass(model, q, v, g, ext)
     a = unrolled._ltdl_solve(M, lam, [fi - b for fi, b in zip(f, bias)])
+    primal = list(em.ops)
+    if mode == "fd":
+        results = [a]
+    elif mode == "jvp":
+        seeds = {}
+        for x, name in ((q, "dq"), (v, "dv"), (f, "df")):
+            for xi, di in zip(x, _inputs(em, name, len(x), _SLOTS[name])):
+                seeds[xi.name] = di
+        tan = _tangent_program(primal, seeds)
+        results = [[tan.get(ai.name, 0.0) if isinstance(ai, _Sym) else 0.0 for ai in a]]
+    elif mode == "vjp":
+        ct = _inputs(em, "ct", joints.nv, _SLOTS["ct"])
+        active = _active(primal, {"q", "v", "f"})
+        adj = _adjoint_program(primal, active, [(ai, ci) for ai, ci in zip(a, ct)])
+        results = [[adj.get(xi.name, 0.0) for xi in x] for x in (q, v, f)]
+    else:
+        raise ValueError(f"unknown mode {mode!r}")
+
+    def value(x):
+        return x.name if isinstance(x, _Sym) else f"U{{}} + T({float(x)!r})"
+
     body = ["  " + line for line in em.lines]
-    body += [f"  st({i}, {ai.name if isinstance(ai, _Sym) else f'U{{}} + T({float(ai)!r})'});" for i, ai in enumerate(a)]
-    return (
-        _KERNEL.replace("@COMMON@", _COMMON.replace("@T@", _SCALAR[np.dtype(dtype)][0]))
-        .replace("@BODY@", "\n".join(body))
-        .replace("@NV@", str(joints.nv))
-    )
+    body += [f"  st({j}, {i}, {value(x)});" for j, xs in enumerate(results) for i, x in enumerate(xs)]
+    return _KERNEL.replace("@COMMON@", _COMMON.replace("@T@", _SCALAR[np.dtype(dtype)][0])).replace("@BODY@", "\n".join(body))
 
 
 # ----------------------------------------------------------------------------- build and load
@@ -520,21 +670,40 @@ def _handler(dtype) -> str:
 _loaded: list = []  # libraries stay loaded for the life of the process (XLA holds their addresses)
 
 
+def _merge_batch(axis_size: int, args, batched) -> tuple[list, int]:
+    """A new batch axis (leading where ``batched``) over ``(B_i, n_i)`` operands, merged with the
+    inner one: ``(axis_size * B, n_i)`` operands (or ``(1, n_i)``, read with stride zero), and B."""
+    inner = max(a.shape[1] if b else a.shape[0] for a, b in zip(args, batched))
+    merged = []
+    for a, b in zip(args, batched):
+        n = a.shape[-1]
+        if b:
+            a = jnp.broadcast_to(a, (axis_size, inner, n)).reshape(axis_size * inner, n)
+        elif a.shape[0] != 1:
+            a = jnp.broadcast_to(a[None], (axis_size, inner, n)).reshape(axis_size * inner, n)
+        merged.append(a)
+    return merged, inner
+
+
 class _Kernel:
-    """One compiled tree and dtype: the kernel's address and the batching wrapper around the call."""
+    """One compiled tree, dtype and mode (:func:`_generate`): its address and the call."""
 
-    def __init__(self, tree, joints, with_external: bool, dtype):
-        self.nv, self.dtype = joints.nv, np.dtype(dtype)
+    def __init__(self, tree, joints, with_external: bool, dtype, mode: str = "fd"):
+        self.tree, self.joints, self.with_external = tree, joints, with_external
+        self.nv, self.nq, self.dtype, self.mode = joints.nv, joints.nq, np.dtype(dtype), mode
+        self.widths = {"fd": (self.nv,), "jvp": (self.nv,), "vjp": (self.nq, self.nv, self.nv)}[mode]
         self.target = _handler(self.dtype)
-        lib = ctypes.cdll.LoadLibrary(str(_build(_generate(tree, joints, with_external, self.dtype), "fd")))
+        source = _generate(tree, joints, with_external, self.dtype, mode)
+        lib = ctypes.cdll.LoadLibrary(str(_build(source, mode)))
         _loaded.append(lib)
-        self.address = ctypes.cast(lib.jaxbody_fd_range, ctypes.c_void_p).value
-        self.batched = self._batched_call()
+        self.address = ctypes.cast(lib.jaxbody_range, ctypes.c_void_p).value
+        if mode == "fd":
+            self.batched = self._batched_call()
 
-    def call(self, *args):
-        """``args``: ``(B_i, n_i)`` arrays with ``B_i`` 1 or the batch size; returns ``(B, nv)``."""
+    def call(self, *args) -> list:
+        """``args``: ``(B_i, n_i)`` arrays with ``B_i`` 1 or the batch size; returns ``(B, width)`` arrays."""
         batch = max(a.shape[0] for a in args)
-        out = jax.ShapeDtypeStruct((batch, self.nv), self.dtype)
+        out = [jax.ShapeDtypeStruct((batch, w), self.dtype) for w in self.widths]
         fn = jax.ffi.ffi_call(self.target, out, vmap_method="sequential")
         # every lane of a SIMD register is one state: the kernel gathers W states' inputs
         return fn(*args, kernel=np.int64(self.address), threads=np.int64(threads()))
@@ -542,29 +711,142 @@ class _Kernel:
     def _batched_call(self):
         @jax.custom_batching.custom_vmap
         def batched(*args):
-            return self.call(*args)
+            return self.call(*args)[0]
 
         @batched.def_vmap
         def rule(axis_size, in_batched, *args):
-            # a new batch axis over (B_i, n_i) inputs: merge it with the inner one
-            inner = max(a.shape[1] if b else a.shape[0] for a, b in zip(args, in_batched))
-            merged = []
-            for a, b in zip(args, in_batched):
-                n = a.shape[-1]
-                if b:
-                    a = jnp.broadcast_to(a, (axis_size, inner, n)).reshape(axis_size * inner, n)
-                elif a.shape[0] != 1:
-                    a = jnp.broadcast_to(a[None], (axis_size, inner, n)).reshape(axis_size * inner, n)
-                merged.append(a)
+            merged, inner = _merge_batch(axis_size, args, in_batched)
             return batched(*merged).reshape(axis_size, inner, self.nv), True
 
         return batched
 
 
-@functools.lru_cache(maxsize=128)
-def _kernel(tree, joints, with_external: bool, dtype) -> _Kernel:
+@functools.lru_cache(maxsize=256)
+def _kernel(tree, joints, with_external: bool, dtype, mode: str = "fd") -> _Kernel:
     with _lock:
-        return _Kernel(tree, joints, with_external, dtype)
+        return _Kernel(tree, joints, with_external, dtype, mode)
+
+
+# ----------------------------------------------------------------------------- derivatives
+# The acceleration's derivative with respect to the state and force, a(q, v, f) -> da, is a
+# linear map of (dq, dv, df) evaluated by the generated forward-mode program ("jvp"); its
+# transpose, ct -> (ctq, ctv, ctf), by the generated reverse-mode program ("vjp"). A primitive
+# ties the two together so that JAX can transpose the tangent (reverse mode of any program
+# around the kernel) and batch it (one call over the stacked states). Derivatives with
+# respect to the model's parameters, gravity and external loads are rarer (identification,
+# design) and come from the vectorised kernel; second derivatives from the unrolled kernel.
+_RES = 6  # residual operands: q, v, f, p, g, ext rows; then the linear ones
+
+_linear_p = Primitive("jaxbody_native_linear")
+_linear_p.multiple_results = True
+
+
+def _linear(*args, tree, joints, with_external, dtype, mode):
+    return _linear_p.bind(*args, tree=tree, joints=joints, with_external=with_external, dtype=dtype, mode=mode)
+
+
+def _linear_abstract(*args, tree, joints, with_external, dtype, mode):
+    batch = max(a.shape[0] for a in args)
+    widths = (joints.nv,) if mode == "jvp" else (joints.nq, joints.nv, joints.nv)
+    return [jax.core.ShapedArray((batch, w), np.dtype(dtype)) for w in widths]
+
+
+def _linear_impl(*args, tree, joints, with_external, dtype, mode):
+    return _kernel(tree, joints, with_external, np.dtype(dtype), mode).call(*args)
+
+
+def _linear_batch(args, dims, **params):
+    axis_size = next(a.shape[d] for a, d in zip(args, dims) if d is not None)
+    args = [a if d is None else jnp.moveaxis(a, d, 0) for a, d in zip(args, dims)]
+    merged, inner = _merge_batch(axis_size, args, [d is not None for d in dims])
+    outs = _linear(*merged, **params)
+    return [o.reshape(axis_size, inner, o.shape[-1]) for o in outs], [0] * len(outs)
+
+
+def _linear_transpose(cts, *args, mode, **params):
+    res, lin = args[:_RES], args[_RES:]
+    if any(ad.is_undefined_primal(r) for r in res):
+        raise NotImplementedError("the native kernel's derivative is linear in the tangents only")
+    cts = [ad.instantiate_zeros(ct) for ct in cts]
+    outs = _linear(*res, *cts, mode="vjp" if mode == "jvp" else "jvp", **params)
+    result = []
+    for x, o in zip(lin, outs):
+        if not ad.is_undefined_primal(x):
+            result.append(None)
+            continue
+        shape = x.aval.shape
+        if o.shape != shape:  # an operand shared by the whole batch: sum its cotangents
+            o = jnp.sum(o, axis=0, keepdims=True)
+        result.append(o)
+    return [None] * _RES + result
+
+
+def _single_state(tree, joints, with_external, q, v, f, p, g, ext):
+    """The acceleration of one state from the operands' rows, by the unrolled kernel."""
+    model = _ParameterModel(tree, joints, p)
+    external = jnp.reshape(ext, (tree.n_body, 6)) if with_external else None
+    ext_rows = None if external is None else [tuple(external[b, i] for i in range(6)) for b in range(tree.n_body)]
+    sc = unrolled._scalars
+    M, bias, lam = unrolled._bias_and_mass(model, sc(q), sc(v), tuple(sc(g)), ext_rows)
+    rhs = [unrolled._add(fi, -bi) for fi, bi in zip(unrolled._scalars(f), bias)]
+    return unrolled._stack(unrolled._ltdl_solve(M, lam, rhs), p.dtype)
+
+
+def _linear_fallback(*args, tree, joints, with_external, dtype, mode):
+    """The same linear map written in JAX (differentiable in its residuals: second derivatives)."""
+    batch = max(a.shape[0] for a in args)
+    rows = [jnp.broadcast_to(a, (batch, a.shape[1])) for a in args]
+
+    def one(q, v, f, p, g, ext, *lin):
+        fd = lambda q, v, f: _single_state(tree, joints, with_external, q, v, f, p, g, ext)  # noqa: E731
+        if mode == "jvp":
+            return [jax.jvp(fd, (q, v, f), tuple(lin))[1]]
+        return list(jax.vjp(fd, q, v, f)[1](lin[0]))
+
+    return jax.vmap(one)(*rows)
+
+
+def _linear_jvp(primals, tangents, **params):
+    outs = _linear(*primals, **params)
+    res_t, lin_t = tangents[:_RES], tangents[_RES:]
+    out_t = [ad.Zero(jax.typeof(o).to_tangent_aval()) for o in outs]
+    if any(type(t) is not ad.Zero for t in lin_t):
+        out_t = _linear(*primals[:_RES], *[ad.instantiate_zeros(t) for t in lin_t], **params)
+    if any(type(t) is not ad.Zero for t in res_t):
+        # second derivatives: the residuals' part from the same map written in JAX
+        res_t = [ad.instantiate_zeros(t) for t in res_t]
+        zero_lin = [jnp.zeros_like(x) for x in primals[_RES:]]
+        _, extra = jax.jvp(lambda *xs: _linear_fallback(*xs, **params), tuple(primals), (*res_t, *zero_lin))
+        out_t = [e if type(o) is ad.Zero else o + e for o, e in zip(out_t, extra)]
+    return outs, out_t
+
+
+_linear_p.def_impl(_linear_impl)
+_linear_p.def_abstract_eval(_linear_abstract)
+mlir.register_lowering(_linear_p, mlir.lower_fun(_linear_impl, multiple_results=True), platform="cpu")
+batching.primitive_batchers[_linear_p] = _linear_batch
+ad.primitive_jvps[_linear_p] = _linear_jvp
+ad.primitive_transposes[_linear_p] = _linear_transpose
+
+
+class _ParameterModel:
+    """What the unrolled kernel reads of a model, sliced from the parameter vector."""
+
+    def __init__(self, tree, joints, p):
+        self.tree, self.joints = tree, joints
+        self.n_body, self.nv, self.nq = tree.n_body, joints.nv, joints.nq
+        offset = 0
+        for name, shape in zip(_SymbolicModel.FIELDS, _field_shapes(tree, joints)):
+            size = int(np.prod(shape))
+            setattr(self, name, jnp.reshape(p[offset : offset + size], shape))
+            offset += size
+
+
+#: Largest number of DoFs whose derivatives the generated programs serve; above it the
+#: vectorised kernel gives the tangents. The derivative programs are about 2.5 times the
+#: forward one: with ``-O2`` the pair compiles in about 12 s for the Panda arm, 32 s for a
+#: 12-link chain and 140 s for a 20-link chain (once per tree; cached).
+MAX_DERIVATIVE_DOFS = 12
 
 
 # ----------------------------------------------------------------------------- the JAX function
@@ -574,26 +856,41 @@ def _reference(model, q, v, force, gravity, external):
     return _vectorised_acceleration(model, q, v, force, gravity, external)
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
-def _forward_dynamics(kernel, model, q, v, force, gravity, external):
+def _rows(model, q, v, force, gravity, external):
     row = lambda x: jnp.reshape(x, (1, -1))  # noqa: E731
     ext = row(external) if external is not None else jnp.zeros((1, 1), q.dtype)
-    args = (row(q), row(v), row(force), row(parameter_vector(model)), row(gravity), ext)
-    return kernel.batched(*args)[0]
+    return (row(q), row(v), row(force), row(parameter_vector(model)), row(gravity), ext)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _forward_dynamics(kernel, model, q, v, force, gravity, external):
+    return kernel.batched(*_rows(model, q, v, force, gravity, external))[0]
 
 
 def _forward_dynamics_jvp(kernel, primals, tangents):
-    # value: the native call; tangent: the vectorised kernel's, which is the same function
-    # (a linear map of the tangents written in JAX, so reverse mode can transpose it). Only
-    # the inputs that carry a tangent are differentiated: a rollout's gradient perturbs the
-    # state, not the model's parameters, whose derivative terms would otherwise cost a third
-    # of the tangent (benchmarks/gradient_profile.py).
+    # value: the native call. Tangent: along (q, v, force) by the generated forward-mode
+    # program (transposed to the generated reverse-mode one in reverse mode); along the
+    # model's parameters, gravity and loads by the vectorised kernel, which computes the same
+    # function. Only the inputs that carry a tangent are differentiated.
     out = _forward_dynamics(kernel, *primals)
+    model, q, v, force, gravity, external = primals
     leaves, treedef = jax.tree_util.tree_flatten(primals)
     dleaves = treedef.flatten_up_to(tangents)
     live = [i for i, d in enumerate(dleaves) if not isinstance(d, SymbolicZero)]
+    tangent = jnp.zeros_like(out)
+    n_model = len(jax.tree_util.tree_leaves(model))
+    state = [n_model, n_model + 1, n_model + 2]  # q, v, force
+    native_state = kernel.nv <= MAX_DERIVATIVE_DOFS
+    if native_state and any(i in live for i in state):
+        lin = []
+        for i, x in zip(state, (q, v, force)):
+            d = dleaves[i]
+            lin.append(jnp.zeros((1, x.size), x.dtype) if isinstance(d, SymbolicZero) else jnp.reshape(d, (1, -1)))
+        params = dict(tree=kernel.tree, joints=kernel.joints, with_external=kernel.with_external, dtype=kernel.dtype)
+        tangent = tangent + _linear(*_rows(*primals), *lin, mode="jvp", **params)[0][0]
+        live = [i for i in live if i not in state]
     if not live:
-        return out, jnp.zeros_like(out)
+        return out, tangent
 
     def of_live(*xs):
         full = list(leaves)
@@ -601,8 +898,8 @@ def _forward_dynamics_jvp(kernel, primals, tangents):
             full[i] = x
         return _reference(*jax.tree_util.tree_unflatten(treedef, full))
 
-    _, tangent = jax.jvp(of_live, tuple(leaves[i] for i in live), tuple(dleaves[i] for i in live))
-    return out, tangent
+    _, rest = jax.jvp(of_live, tuple(leaves[i] for i in live), tuple(dleaves[i] for i in live))
+    return out, tangent + rest
 
 
 _forward_dynamics.defjvp(_forward_dynamics_jvp, symbolic_zeros=True)

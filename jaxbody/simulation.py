@@ -159,17 +159,24 @@ class RK4Stages(diffrax.AbstractSolver):
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         del solver_state, made_jump
         h = t1 - t0
+        control = terms.contr(t0, t1)
+
+        def increment(t, y):
+            # the vector field times the step, through the term's own product: for an ODE
+            # term ``h * f``; diffrax's backsolve adjoint solves with terms whose ``vf`` alone
+            # is not the field to multiply by ``h``
+            return terms.vf_prod(t, y, args, control)
 
         def ahead(k, c):
             return jax.tree.map(lambda y, d: y + c * d, y0, k)
 
-        k1 = terms.vf(t0, y0, args)
-        k2 = terms.vf(t0 + h / 2, ahead(k1, h / 2), args)
-        k3 = terms.vf(t0 + h / 2, ahead(k2, h / 2), args)
-        k4 = terms.vf(t1, ahead(k3, h), args)
-        y1 = jax.tree.map(lambda y, a, b, c, d: y + h / 6 * (a + 2 * b + 2 * c + d), y0, k1, k2, k3, k4)
+        k1 = increment(t0, y0)
+        k2 = increment(t0 + h / 2, ahead(k1, 0.5))
+        k3 = increment(t0 + h / 2, ahead(k2, 0.5))
+        k4 = increment(t1, ahead(k3, 1.0))
+        y1 = jax.tree.map(lambda y, a, b, c, d: y + (a + 2 * b + 2 * c + d) / 6, y0, k1, k2, k3, k4)
         # diffrax's Hermite interpolation takes the end slopes as increments over the step
-        k = jax.tree.map(lambda a, d: h * jnp.stack([a, d]), k1, k4)
+        k = jax.tree.map(lambda a, d: jnp.stack([a, d]), k1, k4)
         return y1, None, dict(y0=y0, y1=y1, k=k), None, diffrax.RESULTS.successful
 
     def func(self, terms, t0, y0, args):
@@ -253,6 +260,10 @@ class _UnitQuaternions(eqx.Module):
     def __call__(self, y):
         from .kinematics import normalize_qpos
 
+        if isinstance(y[0], tuple):
+            # diffrax's backsolve adjoint steps the augmented state (state, adjoints, ...) with
+            # the same solver: renormalise the state it reconstructs in reverse time
+            return (self(y[0]),) + tuple(y[1:])
         return (normalize_qpos(self.model, y[0]),) + tuple(y[1:])
 
 
@@ -813,8 +824,7 @@ def _simulate_scene(
         raise ValueError("give saveat or n_save, not both")
     if n_save is not None and n_save < 2:
         raise ValueError(f"n_save must be at least 2 (t0 and t1), got {n_save}")
-    adjoint = _adjoint(adjoint)
-    scene = _kernel_for_adjoint(scene, adjoint)
+    adjoint = _adjoint(adjoint, max_steps, q0.size + v0.size, q0.dtype.itemsize)
     solver_obj, controller = _solver(solver, scene, q0.dtype, rtol, atol, dt0, controller)
     if dt0 is not None:
         dt0 = jnp.asarray(dt0, q0.dtype)
@@ -941,26 +951,33 @@ def _traced_constraint_check(cs, t0, q0, v0):
     return bad, msg
 
 
-def _kernel_for_adjoint(scene, adjoint):
-    """The scene to integrate with ``adjoint``: backsolve runs the vectorised kernel.
+#: Memory (bytes) the default checkpointed adjoint may give one trajectory's checkpoints.
+#: diffrax's own default, about log2(max_steps) checkpoints, recomputes each step several
+#: times on the way back (a 1000-step Panda gradient took 6.6x its rollout, against 3.7x with
+#: a checkpoint per step: benchmarks/gradients.py); two thousand Panda states fit in 1 MiB.
+CHECKPOINT_BYTES = 1 << 20
 
-    Known problem: ``BacksolveAdjoint``'s reverse-time solve returns wrong gradients when the
-    vector field runs the native kernel (``jax.vjp`` of one evaluation agrees with the
-    vectorised kernel's; the cause is not found yet), so such scenes fall back to the
-    vectorised kernel, which computes the same function.
+
+def default_checkpoints(max_steps: int | None, n_state: int, itemsize: int = 8) -> int:
+    """Checkpoints of the default adjoint: as many as :data:`CHECKPOINT_BYTES` holds.
+
+    One checkpoint holds the solve's loop state — the state ``(q, v)`` of ``n_state`` numbers
+    and what the solver and controller carry besides — counted as ``4 * n_state`` numbers (XLA
+    reports about 2.8 for a Panda RK4 solve). Never fewer than ``ceil(log2(max_steps)) + 1`` (the
+    O(n log n) recomputation bound of diffrax's default) and never more than ``max_steps``
+    (then no step is recomputed twice). Memory stays bounded whatever the horizon.
     """
-    if not isinstance(adjoint, diffrax.BacksolveAdjoint) or getattr(scene, "path", None) != "spatial":
-        return scene
-    from .kernels import resolve_kernel
-
-    if resolve_kernel(scene.system, scene.kernel) != "native":
-        return scene
-    return dataclasses.replace(scene, kernel="vectorised")
+    k = max(int(CHECKPOINT_BYTES // (4 * max(n_state, 1) * itemsize)), 2)
+    if max_steps is None:
+        return k
+    return int(min(max_steps, max(k, math.ceil(math.log2(max(max_steps, 2))) + 1)))
 
 
-def _adjoint(adjoint):
+def _adjoint(adjoint, max_steps=None, n_state=None, itemsize=8):
     if adjoint is None or (isinstance(adjoint, str) and adjoint == "checkpoint"):
-        return diffrax.RecursiveCheckpointAdjoint()
+        if n_state is None:
+            return diffrax.RecursiveCheckpointAdjoint()
+        return diffrax.RecursiveCheckpointAdjoint(checkpoints=default_checkpoints(max_steps, n_state, itemsize))
     if isinstance(adjoint, str):
         if adjoint == "backsolve":
             return diffrax.BacksolveAdjoint()

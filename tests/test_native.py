@@ -127,6 +127,116 @@ def test_gradients_match_finite_differences(models_dir):
     check_grads(fun, (q[0], v[0], tau, model.body_mass), order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6)
 
 
+def _small_tree():
+    """A free base, a slide and a hinge on one body, a ball (11 DoFs): the generated derivatives serve it."""
+    from random_models import random_model
+
+    model = random_model(0, n_body=3, kinds=("ball", "slide_hinge"))
+    assert model.nv <= native.MAX_DERIVATIVE_DOFS
+    return model
+
+
+def test_generated_derivatives_equal_the_vectorised_kernel():
+    """Forward mode (the generated tangent program) and reverse mode (the generated adjoint
+    program, as the transpose) w.r.t. state and force, with gravity and body loads, single,
+    under vmap with batched and shared tangents, and a second derivative (through the JAX
+    fallback of the derivative's own derivative)."""
+    model = _small_tree()
+    rng = np.random.default_rng(11)
+    q, v = _states(model, rng, 4)
+    tau = jnp.asarray(rng.standard_normal((4, model.nv)))
+    ext = jnp.asarray(rng.standard_normal((model.tree.n_body, 6)))
+
+    def fd(kernel):
+        return lambda q, v, t: kernels.acceleration(model, q, v, t, gravity=model.gravity, external=ext, kernel=kernel)
+
+    def close(x, y, tol=1e-10):
+        for a, b in zip(jax.tree.leaves(x), jax.tree.leaves(y)):
+            assert float(jnp.max(jnp.abs(a - b))) <= tol * max(float(jnp.max(jnp.abs(b))), 1.0)
+
+    args = (q[0], v[0], tau[0])
+    for jac in (jax.jacfwd, jax.jacrev):
+        close(jax.jit(jac(fd("native"), argnums=(0, 1, 2)))(*args), jax.jit(jac(fd("vectorised"), argnums=(0, 1, 2)))(*args))
+
+    # batched states, one tangent shared by all (its cotangent is summed over the batch)
+    def loss(kernel):
+        return lambda v_shared: jnp.sum(jnp.sin(jax.vmap(lambda q, t: fd(kernel)(q, v_shared, t))(q, tau)))
+
+    close(jax.jit(jax.grad(loss("native")))(v[0]), jax.jit(jax.grad(loss("vectorised")))(v[0]))
+    dq = jnp.asarray(rng.standard_normal(model.nq))
+    jvp = lambda k: lambda: jax.vmap(lambda q, v: jax.jvp(lambda q: fd(k)(q, v, tau[0]), (q,), (dq,))[1])(q, v)  # noqa: E731
+    close(jax.jit(jvp("native"))(), jax.jit(jvp("vectorised"))())
+
+
+@pytest.mark.slow  # about 15 s: the fallback compiles the unrolled kernel's second derivatives
+def test_second_derivatives_through_the_native_kernel():
+    """The derivative of the generated derivative (its residuals' part from the same map
+    written in JAX) equals the vectorised kernel's Hessian."""
+    model = _small_tree()
+    rng = np.random.default_rng(12)
+    q, v = _states(model, rng, 1)
+    tau = jnp.asarray(rng.standard_normal(model.nv))
+
+    def hess(kernel):
+        fd = lambda v: kernels.acceleration(model, q[0], v, tau, gravity=model.gravity, kernel=kernel)  # noqa: E731
+        return jax.jit(jax.hessian(lambda v: jnp.sum(fd(v) ** 2)))(v[0])
+
+    a, b = hess("native"), hess("vectorised")
+    assert float(jnp.max(jnp.abs(a - b))) <= 1e-9 * float(jnp.max(jnp.abs(b)))
+
+
+def _rollout_gradients(model, kernels_and_adjoints, q0, v0):
+    import diffrax
+
+    out = []
+    for kernel, adjoint in kernels_and_adjoints:
+        scene = jb.scene(model, kernel=kernel)
+
+        def loss(q0, scene=scene, adjoint=adjoint):
+            sol = jb.simulate(scene, q0, v0, 0.05, solver="rk4", dt0=1e-3, saveat=diffrax.SaveAt(t1=True), adjoint=adjoint, max_steps=100)
+            return jnp.sum(sol.q[-1] ** 2) + jnp.sum(sol.v[-1] ** 2)
+
+        out.append(jax.jit(jax.grad(loss))(q0))
+    return out
+
+
+def test_backsolve_with_the_written_out_rk4_stages_equals_checkpointing():
+    """``adjoint="backsolve"`` integrates the adjoint equations with the scene's solver in
+    reverse time; for a native-kernel scene that is the written-out RK4 (``RK4Stages``), whose
+    stages go through the term's ``vf_prod``. Its gradient equals the checkpointed one up to
+    the discretisation of the adjoint equations."""
+    from random_models import hinge_chain
+
+    model = hinge_chain(3)
+    q0 = model.qpos0 + 0.4
+    v0 = jnp.linspace(-1.0, 1.0, model.nv)
+    ck, bs = _rollout_gradients(model, [("native", "checkpoint"), ("native", "backsolve")], q0, v0)
+    assert float(jnp.max(jnp.abs(bs - ck))) <= 1e-8 * float(jnp.max(jnp.abs(ck)))
+
+
+@pytest.mark.slow  # about 90 s: four rollout gradients of a free-base tree
+def test_rollout_gradient_with_generated_derivatives_checkpoint_and_backsolve():
+    """A rollout gradient on the native kernel (generated derivatives, the written-out RK4
+    stages) equals the vectorised kernel's (the tableau RK4), for the checkpointed and the
+    backsolve adjoint (which renormalises the quaternions it reconstructs in reverse time)."""
+    model = _small_tree()
+    q0 = jb.normalize_qpos(model, model.qpos0 + 0.2)
+    v0 = jnp.linspace(-1.0, 1.0, model.nv)
+    pairs = [(k, a) for a in ("checkpoint", "backsolve") for k in ("vectorised", "native")]
+    ck_ref, ck, bs_ref, bs = _rollout_gradients(model, pairs, q0, v0)
+    for g, ref in ((ck, ck_ref), (bs, bs_ref)):
+        assert float(jnp.max(jnp.abs(g - ref))) <= 1e-9 * float(jnp.max(jnp.abs(ref)))
+
+
+@pytest.mark.slow  # about 30 s: Panda's derivative programs and the vectorised reference
+def test_panda_rollout_gradient_with_generated_derivatives(models_dir):
+    model = jb.from_mjcf(str(models_dir / "panda.xml"))
+    v0 = jnp.linspace(-1.0, 1.0, model.nv)
+    ref, ck, bs = _rollout_gradients(model, [("vectorised", "checkpoint"), ("native", "checkpoint"), ("native", "backsolve")], model.qpos0 + 0.2, v0)
+    for g in (ck, bs):
+        assert float(jnp.max(jnp.abs(g - ref))) <= 1e-8 * float(jnp.max(jnp.abs(ref)))
+
+
 @pytest.mark.slow  # about 25 s
 def test_reverse_mode_under_vmap_equals_the_vectorised_kernel(models_dir):
     model = jb.from_mjcf(str(models_dir / "panda.xml"))
@@ -245,23 +355,3 @@ def test_sines_of_large_joint_angles():
         a, b = run("native"), run("vectorised")
         assert float(jnp.max(jnp.abs(a - b))) <= 1e-10 * float(jnp.max(jnp.abs(b))), offset
 
-
-@pytest.mark.slow
-def test_backsolve_gradient_with_the_native_kernel_equals_the_checkpointed_one(models_dir):
-    """``adjoint="backsolve"`` on a native-kernel scene integrates with the vectorised kernel
-    (simulation._kernel_for_adjoint): its gradient agrees with the checkpointed one."""
-    import diffrax
-
-    model = jb.from_mjcf(str(models_dir / "panda.xml"))
-    scene = jb.scene(model, kernel="native")
-    v0 = jnp.linspace(-1.0, 1.0, model.nv)
-
-    def grad(adjoint):
-        def loss(q0):
-            sol = jb.simulate(scene, q0, v0, 0.05, solver="rk4", dt0=1e-3, saveat=diffrax.SaveAt(t1=True), adjoint=adjoint, max_steps=100)
-            return jnp.sum(sol.q[-1] ** 2) + jnp.sum(sol.v[-1] ** 2)
-
-        return jax.grad(loss)(model.qpos0 + 0.2)
-
-    a, b = grad("backsolve"), grad("checkpoint")
-    assert float(jnp.max(jnp.abs(a - b))) <= 1e-8 * float(jnp.max(jnp.abs(b)))
