@@ -28,6 +28,7 @@ def main(argv=None):
     p.add_argument("--min-time", type=float, default=0.5)
     p.add_argument("--out", default=str(RESULTS))
     p.add_argument("--name", default="gradient_profile")
+    p.add_argument("--no-rollout", action="store_true", help="skip the per-step pieces of a 1000-step rollout")
     args = p.parse_args(argv)
     os.environ.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
     rec = {"stamp": stamp(), "model": args.model, "rows": []}
@@ -75,6 +76,9 @@ def main(argv=None):
             rec["rows"].append({"kernel": kernel, "piece": name, "us": 1e6 * t, "ratio": t / base})
             print(f"{kernel:10s} {name:28s} {1e6 * t:9.2f} us  {t / base:6.1f}x", flush=True)
 
+    if not args.no_rollout:
+        rec["rollout"] = _rollout_pieces(args, model, q, v, tau, w)
+
     rec["stamp"]["load_average_end"] = load_average()
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -92,7 +96,79 @@ def main(argv=None):
         markdown_table(["kernel", "piece", "µs", "× forward of that kernel"], rows),
         "",
     ]
+    if "rollout" in rec:
+        r = rec["rollout"]
+        md += [
+            f"## Per step of a {r['steps']}-step RK4 rollout (native kernel, µs per step)",
+            "",
+            "Where the time of a checkpointed rollout gradient goes. `fori_loop` rows: the kernel "
+            "alone, called once per iteration of a jitted loop. `diffrax floor` rows: the same solve "
+            "(written-out RK4 stages, one checkpoint per step, `SaveAt(t1=True)`) of a free vector "
+            f"field `tanh(A y)` with as many states ({r['n_state']}) — what diffrax's loop and its "
+            "checkpointed reverse pass cost without any dynamics. `simulate` rows: the loss of "
+            "`benchmarks/gradients.py` through `jb.simulate` on the native kernel, default adjoint.",
+            "",
+            markdown_table(["piece", "µs per step", "ratio"], [(k, f"{x:.2f}", f"{y:.2f}" if y else "") for k, x, y in r["rows"]]),
+            "",
+        ]
     (out / f"{args.name}.md").write_text("\n".join(md))
+
+
+def _rollout_pieces(args, model, q, v, tau, w):
+    """Per-step costs of a rollout and of its checkpointed gradient (see the record's text)."""
+    import diffrax
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import jaxbody as jb
+    from jaxbody import kernels
+    from jaxbody.simulation import RK4Stages
+
+    steps, dt = 1000, 1e-3
+    per_step = lambda fn: 1e6 * time_per_call(lambda: jax.block_until_ready(fn()), min_time=args.min_time)["median_s"] / steps  # noqa: E731
+
+    def fd(q, v):
+        return kernels.acceleration(model, q, v, tau, gravity=model.gravity, kernel="native")
+
+    def vjp_step(i, c):
+        _, pullback = jax.vjp(fd, c[0], c[1])
+        dq, dv = pullback(w)
+        return c[0] + 1e-9 * dq, c[1] + 1e-9 * dv
+
+    loop_fd = jax.jit(lambda q, v: jax.lax.fori_loop(0, steps, lambda i, c: (c[0], c[1] + 1e-9 * fd(*c)), (q, v)))
+    loop_vjp = jax.jit(lambda q, v: jax.lax.fori_loop(0, steps, vjp_step, (q, v)))
+    rows = []
+    t_fd = per_step(lambda: loop_fd(q, v))
+    rows.append(("fori_loop: forward dynamics", t_fd, None))
+    rows.append(("fori_loop: vjp (reverse-mode program, value unused)", per_step(lambda: loop_vjp(q, v)), None))
+
+    n_state = model.nq + model.nv
+    A = jnp.asarray(np.random.default_rng(0).standard_normal((n_state, n_state)) / np.sqrt(n_state))
+    adjoint = diffrax.RecursiveCheckpointAdjoint(checkpoints=steps + 16)
+
+    def free(y0):
+        sol = diffrax.diffeqsolve(diffrax.ODETerm(lambda t, y, a: jnp.tanh(A @ y)), RK4Stages(), 0.0, steps * dt, dt, y0,
+                                  saveat=diffrax.SaveAt(t1=True), max_steps=steps + 16, adjoint=adjoint)
+        return jnp.sum(sol.ys[-1] ** 2)
+
+    y0 = jnp.concatenate([q, v])
+    f_fwd, f_grad = jax.jit(free), jax.jit(jax.grad(free))
+    a, b = per_step(lambda: f_fwd(y0)), per_step(lambda: f_grad(y0))
+    rows += [("diffrax floor: forward", a, None), ("diffrax floor: checkpointed gradient", b, b / a)]
+
+    scene = jb.scene(model, kernel="native")
+
+    def loss(q0, v0):
+        sol = jb.simulate(scene, q0, v0, steps * dt, solver="rk4", dt0=dt, saveat=diffrax.SaveAt(t1=True), max_steps=steps + 16)
+        return jnp.sum(sol.q[-1] ** 2) + jnp.sum(sol.v[-1] ** 2)
+
+    s_fwd, s_grad = jax.jit(loss), jax.jit(jax.grad(loss, argnums=(0, 1)))
+    a, b = per_step(lambda: s_fwd(q, v)), per_step(lambda: s_grad(q, v))
+    rows += [("simulate: forward", a, None), ("simulate: gradient", b, b / a)]
+    for name, x, y in rows:
+        print(f"{name:45s} {x:8.2f} us/step" + (f"  {y:.2f}x" if y else ""), flush=True)
+    return {"steps": steps, "n_state": n_state, "rows": rows}
 
 
 if __name__ == "__main__":

@@ -176,7 +176,7 @@ def test_identify_benchmark_smoke(tmp_path):
 def test_gradient_profile_smoke(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(REPO))
     env.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
-    cmd = [sys.executable, str(BENCH / "gradient_profile.py"), "--kernels", "vectorised", "--min-time", "0.01",
+    cmd = [sys.executable, str(BENCH / "gradient_profile.py"), "--kernels", "vectorised", "--min-time", "0.01", "--no-rollout",
            "--out", str(tmp_path), "--name", "rec"]
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env, cwd=REPO)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
