@@ -784,11 +784,10 @@ def _linear_transpose(cts, *args, mode, **params):
 def _single_state(tree, joints, with_external, q, v, f, p, g, ext):
     """The acceleration of one state from the operands' rows, by the unrolled kernel."""
     model = _ParameterModel(tree, joints, p)
-    external = jnp.reshape(ext, (tree.n_body, 6)) if with_external else None
-    ext_rows = None if external is None else [tuple(external[b, i] for i in range(6)) for b in range(tree.n_body)]
     sc = unrolled._scalars
-    M, bias, lam = unrolled._bias_and_mass(model, sc(q), sc(v), tuple(sc(g)), ext_rows)
-    rhs = [unrolled._add(fi, -bi) for fi, bi in zip(unrolled._scalars(f), bias)]
+    loads = [tuple(sc(ext[6 * b : 6 * b + 6])) for b in range(tree.n_body)] if with_external else None
+    M, bias, lam = unrolled._bias_and_mass(model, sc(q), sc(v), tuple(sc(g)), loads)
+    rhs = [unrolled._add(fi, -bi) for fi, bi in zip(sc(f), bias)]
     return unrolled._stack(unrolled._ltdl_solve(M, lam, rhs), p.dtype)
 
 
@@ -844,8 +843,8 @@ class _ParameterModel:
 
 #: Largest number of DoFs whose derivatives the generated programs serve; above it the
 #: vectorised kernel gives the tangents. The derivative programs are about 2.5 times the
-#: forward one: with ``-O2`` the pair compiles in about 12 s for the Panda arm, 32 s for a
-#: 12-link chain and 140 s for a 20-link chain (once per tree; cached).
+#: forward one: the pair compiles in about 7 s for the Panda arm, 20 s for a 12-link chain
+#: and 96 s for a 20-link chain (once per tree, then cached; benchmarks/native_build.py).
 MAX_DERIVATIVE_DOFS = 12
 
 
@@ -877,7 +876,7 @@ def _forward_dynamics_jvp(kernel, primals, tangents):
     leaves, treedef = jax.tree_util.tree_flatten(primals)
     dleaves = treedef.flatten_up_to(tangents)
     live = [i for i, d in enumerate(dleaves) if not isinstance(d, SymbolicZero)]
-    tangent = jnp.zeros_like(out)
+    tangent = None
     n_model = len(jax.tree_util.tree_leaves(model))
     state = [n_model, n_model + 1, n_model + 2]  # q, v, force
     native_state = kernel.nv <= MAX_DERIVATIVE_DOFS
@@ -887,10 +886,10 @@ def _forward_dynamics_jvp(kernel, primals, tangents):
             d = dleaves[i]
             lin.append(jnp.zeros((1, x.size), x.dtype) if isinstance(d, SymbolicZero) else jnp.reshape(d, (1, -1)))
         params = dict(tree=kernel.tree, joints=kernel.joints, with_external=kernel.with_external, dtype=kernel.dtype)
-        tangent = tangent + _linear(*_rows(*primals), *lin, mode="jvp", **params)[0][0]
+        tangent = _linear(*_rows(*primals), *lin, mode="jvp", **params)[0][0]
         live = [i for i in live if i not in state]
     if not live:
-        return out, tangent
+        return out, jnp.zeros_like(out) if tangent is None else tangent
 
     def of_live(*xs):
         full = list(leaves)
@@ -899,7 +898,7 @@ def _forward_dynamics_jvp(kernel, primals, tangents):
         return _reference(*jax.tree_util.tree_unflatten(treedef, full))
 
     _, rest = jax.jvp(of_live, tuple(leaves[i] for i in live), tuple(dleaves[i] for i in live))
-    return out, tangent + rest
+    return out, rest if tangent is None else tangent + rest
 
 
 _forward_dynamics.defjvp(_forward_dynamics_jvp, symbolic_zeros=True)

@@ -91,7 +91,7 @@ def test_throughput_and_gradients_full_smoke(tmp_path):
     a = rec["analysis"]["chain2"]
     assert a["forward_mode_vs_checkpoint_rel"] < 1e-10
     assert a["backsolve_vs_checkpoint_rel"] < 1e-6
-    assert rec["runs"]["chain2"]["checkpoint"]["longer_horizon"]["steps"] == 40
+    assert rec["runs"]["chain2"]["checkpoint"]["longer_horizon"]["steps"] == 160  # --horizon-factor 16
 
 
 @pytest.mark.slow  # about 35 s: compiles the unrolled kernel; throughput.py's smoke test stays in the default suite
@@ -184,3 +184,17 @@ def test_gradient_profile_smoke(tmp_path):
     assert [r["piece"] for r in rec["rows"]] == ["forward", "jvp (value and tangent)", "vjp (value and cotangent)"]
     assert all(r["us"] > 0 for r in rec["rows"]) and rec["rows"][0]["ratio"] == 1.0
     assert "| vectorised | vjp (value and cotangent) |" in (tmp_path / "rec.md").read_text()
+
+
+def test_native_build_smoke(tmp_path):
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    cmd = [sys.executable, str(BENCH / "native_build.py"), "--models", "chain2", "--out", str(tmp_path), "--name", "rec"]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env, cwd=REPO)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    rec = json.loads((tmp_path / "rec.json").read_text())
+    assert [r["program"] for r in rec["rows"]] == ["fd", "jvp", "vjp"]
+    fd, jvp, vjp = rec["rows"]
+    assert fd["nv"] == 2 and all(r["compile_s"] > 0 for r in rec["rows"])
+    assert jvp["lines"] > fd["lines"] and vjp["lines"] > fd["lines"]  # the derivative programs contain the forward one
+    assert "| chain2 | 2 | vjp |" in (tmp_path / "rec.md").read_text()

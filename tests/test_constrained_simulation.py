@@ -101,6 +101,7 @@ def test_four_bar_scene_equals_constrained_system(four_bar_run):
     np.testing.assert_allclose(direct.constraint_drift["position"], sol.constraint_drift["position"], atol=1e-9)
 
 
+@pytest.mark.slow  # about 45 s; a constrained simulate_batch stays in the default suite (test_repartition)
 def test_four_bar_batch_equals_loop(four_bar_scene):
     states = [four_bar_state(a, w) for a, w in ((0.6, 2.0), (1.4, -1.0), (2.5, 0.5))]
     q0s = jnp.stack([s[0] for s in states])

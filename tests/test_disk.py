@@ -236,6 +236,7 @@ def test_rates_violating_the_regime_are_rejected():
     dk.initial_velocities(systems()[0], Q, jnp.array([0.1, 0.0, 0.5, 0.2, 0.0]))
 
 
+@pytest.mark.slow  # about 50 s; the default suite keeps the reverse-mode gradient through a repartitioning solve
 def test_gradient_of_final_heading_wrt_spin():
     s = systems()[2]
 
