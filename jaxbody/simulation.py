@@ -953,8 +953,8 @@ def _traced_constraint_check(cs, t0, q0, v0):
 
 #: Memory (bytes) the default checkpointed adjoint may give one trajectory's checkpoints.
 #: diffrax's own default, about log2(max_steps) checkpoints, recomputes each step several
-#: times on the way back (a 1000-step Panda gradient took 6.6x its rollout, against 3.7x with
-#: a checkpoint per step: benchmarks/gradients.py); two thousand Panda states fit in 1 MiB.
+#: times on the way back (for a 1000-step Panda gradient on the native kernel, about twice
+#: the time of one checkpoint per step); two thousand Panda states fit in 1 MiB.
 CHECKPOINT_BYTES = 1 << 20
 
 

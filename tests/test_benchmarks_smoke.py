@@ -60,6 +60,7 @@ def _check_throughput(rec, impls):
     assert {"T1", "T2", "T4", "T5"} <= ids
 
 
+@pytest.mark.slow  # about 35 s; test_throughput_and_gradients_full_smoke (slow) runs the same scripts further
 def test_throughput_and_gradients_smoke(tmp_path):
     rec, md = _run("throughput.py", tmp_path / "t", "--impls", "jb64,mujoco", "--no-accuracy",
                    "--single-steps", "10", "--chunk", "2", "--models", "chain2", "--batches", "1,4", "--steps", "10")
