@@ -187,16 +187,22 @@ class _SymbolicModel:
     FIELDS = ("body_pos", "body_quat", "body_mass", "body_com", "body_inertia", "joint_pos", "joint_axis", "dof_armature", "qpos0")
 
     def __init__(self, tree, joints, em: _Emitter):
-        self.tree, self.joints = tree, joints
-        self.n_body, self.nv, self.nq = tree.n_body, joints.nv, joints.nq
-        sizes = [int(np.prod(shape)) for shape in _field_shapes(tree, joints)]
-        p = _inputs(em, "p", sum(sizes), _SLOTS["p"])
-        offset = 0
-        for name, shape, size in zip(self.FIELDS, _field_shapes(tree, joints), sizes):
-            syms = np.empty(size, dtype=object)
-            syms[:] = p[offset : offset + size]
-            setattr(self, name, syms.reshape(shape))
-            offset += size
+        n = sum(int(np.prod(shape)) for shape in _field_shapes(tree, joints))
+        p = np.empty(n, dtype=object)
+        p[:] = _inputs(em, "p", n, _SLOTS["p"])
+        _unflatten_parameters(self, tree, joints, p, np.reshape)
+
+
+def _unflatten_parameters(target, tree, joints, flat, reshape) -> None:
+    """Set the fields the unrolled passes read on ``target``, sliced from the flat parameter
+    vector ``flat`` (order of :func:`parameter_vector`) with ``reshape``."""
+    target.tree, target.joints = tree, joints
+    target.n_body, target.nv, target.nq = tree.n_body, joints.nv, joints.nq
+    offset = 0
+    for name, shape in zip(_SymbolicModel.FIELDS, _field_shapes(tree, joints)):
+        size = int(np.prod(shape))
+        setattr(target, name, reshape(flat[offset : offset + size], shape))
+        offset += size
 
 
 # the operands of every generated function, in order: the state and the model, then (for the
@@ -832,13 +838,7 @@ class _ParameterModel:
     """What the unrolled kernel reads of a model, sliced from the parameter vector."""
 
     def __init__(self, tree, joints, p):
-        self.tree, self.joints = tree, joints
-        self.n_body, self.nv, self.nq = tree.n_body, joints.nv, joints.nq
-        offset = 0
-        for name, shape in zip(_SymbolicModel.FIELDS, _field_shapes(tree, joints)):
-            size = int(np.prod(shape))
-            setattr(self, name, jnp.reshape(p[offset : offset + size], shape))
-            offset += size
+        _unflatten_parameters(self, tree, joints, p, jnp.reshape)
 
 
 #: Largest number of DoFs whose derivatives the generated programs serve; above it the
