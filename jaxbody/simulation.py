@@ -158,6 +158,10 @@ class RK4Stages(diffrax.AbstractSolver):
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         del solver_state, made_jump
+        fused = _native_rk4_step(terms, args, y0)
+        if fused is not None:
+            y1, k = fused(t0, t1, y0)
+            return y1, None, dict(y0=y0, y1=y1, k=k), None, diffrax.RESULTS.successful
         h = t1 - t0
         control = terms.contr(t0, t1)
 
@@ -181,6 +185,72 @@ class RK4Stages(diffrax.AbstractSolver):
 
     def func(self, terms, t0, y0, args):
         return terms.vf(t0, y0, args)
+
+
+def _native_rk4_step(terms, args, y0):
+    """The whole RK4 step as one native call (:func:`jaxbody.native.rk4_step`), where it computes
+    exactly what the four stages would: ``simulate``'s own vector field (not the augmented one of
+    a backsolve adjoint) for a scene whose forward dynamics is the native kernel and whose
+    effects are gravity, joint dampers and joint springs (springs on trees of hinge and slide
+    joints only): nothing that depends on time. Returns ``(t0, t1, y0) -> (y1, k)`` or ``None``."""
+    from .effects import Gravity, JointDampers, JointSprings
+    from .kernels import resolve_kernel
+    from .native import rk4_step
+
+    inner = terms
+    while type(inner) is diffrax._term.WrapTerm:  # diffrax's wrapper for the direction of time
+        inner = inner.term
+    if type(inner) is not diffrax.ODETerm or not isinstance(y0, tuple) or len(y0) not in (2, 3):
+        return None
+    field = inner.vector_field
+    if field is _vector_field:
+        slots = None
+    elif isinstance(field, functools.partial) and field.func is _vector_field:
+        slots = field.keywords.get("slots")
+    else:
+        return None
+    if not (isinstance(args, tuple) and len(args) == 2 and isinstance(args[0], Scene)):
+        return None
+    scene, valid = args
+    effects = scene.effects
+    if not scene._direct() or not all(isinstance(e, (Gravity, JointDampers, JointSprings)) for e in effects):
+        return None
+    springs = [e for e in effects if isinstance(e, JointSprings)]
+    dampers = [e for e in effects if isinstance(e, JointDampers)]
+    if len(springs) > 1 or len(dampers) > 1 or resolve_kernel(scene.system, getattr(scene, "kernel", None)) != "native":
+        return None
+    model = scene.system
+    if springs and any(kind.quaternion is not None for kind, *_ in model.joints.kind_groups()):
+        return None
+    if len(y0) == 3 and (not slots or not dampers or len(slots) != 1):
+        return None  # a work vector whose slots are not the dampers' alone
+    dtype = y0[1].dtype
+    gravity = jnp.zeros(3, dtype)
+    for e in effects:
+        if isinstance(e, Gravity):
+            gravity = gravity + jnp.asarray(e.vector, dtype)
+    passive = {}
+    if springs:
+        passive.update(stiffness=springs[0].stiffness, reference=springs[0].reference)
+    if dampers:
+        passive.update(damping=dampers[0].damping)
+
+    def fused(t0, t1, y0):
+        # the field does not depend on time: the step is the term's control (t1 - t0, signed)
+        q1, v1, k1q, k1v, k4q, k4v, work = rk4_step(model, y0[0], y0[1], terms.contr(t0, t1), gravity=gravity, **passive)
+        y1, k = (q1, v1), (jnp.stack([k1q, k4q]), jnp.stack([k1v, k4v]))
+        if len(y0) == 3:
+            w0, slot = y0[2], slots[0]
+            zeros = jnp.zeros_like(w0)
+            y1 = y1 + (w0.at[slot].add(work[0].astype(w0.dtype)),)
+            k = k + (jnp.stack([zeros.at[slot].set(work[1].astype(w0.dtype)), zeros.at[slot].set(work[2].astype(w0.dtype))]),)
+        if valid is not None:
+            # a member that failed the boundary check stays frozen, as under _vector_field
+            y1 = jax.tree.map(lambda a, b: jnp.where(valid, a, b), y1, y0)
+            k = jax.tree.map(lambda a: jnp.where(valid, a, 0.0), k)
+        return y1, k
+
+    return fused
 
 
 def _runs_unrolled_kernel(scene) -> bool:
