@@ -117,6 +117,11 @@ def _lit(x) -> str:
     return f"T({float(x)!r})"
 
 
+def _value(x) -> str:
+    """``x`` as a vector expression (a constant broadcast to every lane)."""
+    return x.name if isinstance(x, _Sym) else f"(U{{}} + T({float(x)!r}))"
+
+
 class _Sym:
     """A scalar of the generated program: a C++ name; arithmetic emits code.
 
@@ -176,6 +181,17 @@ class _Sym:
 
     def cos(self):
         return self.em.sincos(self)[1]
+
+    def sqrt(self):
+        return self.em.emit(f"vsqrt({self.name})", "sqrt", (self,))
+
+    def atan2(self, x):
+        """``atan2(self, x)``."""
+        return self.em.emit(f"vatan2({self.name}, {_lit(x)})", "atan2", (self, x))
+
+    def where_negative(self, a, b):
+        """``a`` where ``self < 0``, else ``b`` (lane by lane)."""
+        return self.em.emit(f"({self.name} < T(0)) ? {_value(a)} : {_value(b)}", "select", (self, a, b))
 
     def sin(self):
         return self.em.sincos(self)[0]
@@ -257,16 +273,62 @@ def _qdot_scalars(joints, q: list, v: list) -> list:
     return qd
 
 
+def _where_negative(c, a, b):
+    """``a`` where ``c < 0``, else ``b``: on symbols, JAX scalars or constants."""
+    if isinstance(c, _Sym):
+        if not isinstance(a, _Sym) and not isinstance(b, _Sym) and a == b:
+            return a
+        return c.where_negative(a, b)
+    if isinstance(c, float | int):
+        return a if c < 0 else b
+    return jnp.where(c < 0, a, b)
+
+
+def _sqrt(x):
+    return x.sqrt() if isinstance(x, _Sym) else jnp.sqrt(x)
+
+
+def _atan2(y, x):
+    return y.atan2(x) if isinstance(y, _Sym) else jnp.arctan2(y, x)
+
+
+def _quat_spring_displacement(q: list, r: list) -> list:
+    """Rotation vector of ``r⁻¹ ⊗ q/|q|`` on scalars, the short way round, as
+    :func:`jaxbody.kernels._quat_log_diff` (MuJoCo's ``mju_subQuat``; the same safe branches)."""
+    n = _sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    aw, ax, ay, az = (x / n for x in q)
+    bw, bx, by, bz = r[0], -r[1], -r[2], -r[3]
+    d = [
+        bw * aw - bx * ax - by * ay - bz * az,
+        bw * ax + bx * aw + by * az - bz * ay,
+        bw * ay - bx * az + by * aw + bz * ax,
+        bw * az + bx * ay - by * ax + bz * aw,
+    ]
+    sign = _where_negative(d[0], -1.0, 1.0)
+    d = [x * sign for x in d]
+    s2 = d[1] * d[1] + d[2] * d[2] + d[3] * d[3]
+    s = _sqrt(_where_negative(-s2, s2, 1.0))  # s2 > 0, else 1: no infinite derivative at zero
+    scale = _where_negative(1e-30 - s2, 2.0 * _atan2(s, d[0]) / s, 2.0)
+    return [d[1] * scale, d[2] * scale, d[3] * scale]
+
+
 def _joint_force(joints, q: list, v: list, force: list, stiffness: list, reference: list, damping: list) -> tuple:
-    """``force`` plus hinge/slide springs ``−k (q − q_ref)`` and dampers ``−c v`` on lists of
-    scalars, and the dampers' power ``(−c v)·v``. Springs of ball and free joints are not here
-    (the callers use this only for trees without them, or with no springs)."""
+    """``force`` plus joint springs ``−k (q ⊖ q_ref)`` (quaternion joints: rotation-vector
+    difference) and dampers ``−c v`` on lists of scalars, and the dampers' power ``(−c v)·v``;
+    as :class:`jaxbody.JointSprings` and :class:`jaxbody.JointDampers`."""
     total = list(force)
     for kind, js, qa, da in joints.kind_groups():
-        if kind.quaternion is not None:
-            continue
         for j, qi, di in zip(js.tolist(), qa.tolist(), da.tolist()):
-            total[di] = total[di] - stiffness[j] * (q[qi] - reference[qi])
+            if kind.quaternion is None:
+                total[di] = total[di] - stiffness[j] * (q[qi] - reference[qi])
+                continue
+            n = kind.translation
+            for k in range(n):
+                total[di + k] = total[di + k] - stiffness[j] * (q[qi + k] - reference[qi + k])
+            i = qi + kind.quaternion
+            disp = _quat_spring_displacement(q[i : i + 4], reference[i : i + 4])
+            for k in range(3):
+                total[di + n + k] = total[di + n + k] - stiffness[j] * disp[k]
     power = 0.0
     for i in range(len(v)):
         damper = -(damping[i] * v[i])
@@ -410,6 +472,18 @@ static inline void vsincos(V x, V& s, V& c, int n) {
     }
   }
   sincos_lanes(x, s, c, n);
+}
+
+// square root and two-argument arc tangent of every lane (the springs of quaternion joints)
+static inline V vsqrt(V x) {
+  V r;
+  for (int l = 0; l < W; ++l) r[l] = std::sqrt(x[l]);
+  return r;
+}
+static inline V vatan2(V y, V x) {
+  V r;
+  for (int l = 0; l < W; ++l) r[l] = std::atan2(y[l], x[l]);
+  return r;
 }
 
 // the generated function of the states b0 .. b0 + n - 1 (n <= W); lane l is state b0 + min(l, n - 1)
@@ -593,6 +667,14 @@ def _tangent_program(ops: list, seeds: dict) -> dict:
             s, c = out
             tan[s.name], tan[c.name] = c * ds[0], -(s * ds[0])
             continue
+        elif kind == "sqrt":
+            t = ds[0] * 0.5 / out
+        elif kind == "atan2":
+            y, x = args
+            t = (x * ds[0] - y * ds[1]) / (x * x + y * y)
+        elif kind == "select":
+            cond = args[0]
+            t = 0.0 if _is_zero(ds[1]) and _is_zero(ds[2]) else _where_negative(cond, ds[1], ds[2])
         else:
             raise AssertionError(f"no tangent rule for {kind!r}")
         tan[out.name] = t
@@ -641,6 +723,19 @@ def _adjoint_program(ops: list, active: set, seeds: list) -> dict:
             acc(args[0], gy)
             if isinstance(args[1], _Sym) and args[1].name in active:
                 acc(args[1], -(gy * out))
+        elif kind == "sqrt":
+            acc(args[0], g * 0.5 / out)
+        elif kind == "atan2":
+            y, x = args
+            r = g / (x * x + y * y)
+            acc(y, r * x)
+            if isinstance(x, _Sym) and x.name in active:
+                acc(x, -(r * y))
+        elif kind == "select":
+            cond = args[0]
+            for branch, (a, b) in ((args[1], (g, 0.0)), (args[2], (0.0, g))):
+                if isinstance(branch, _Sym) and branch.name in active:
+                    acc(branch, _where_negative(cond, a, b))
         else:
             raise AssertionError(f"no adjoint rule for {kind!r}")
     return adj
@@ -1151,9 +1246,9 @@ def rk4_step(
     """One classical RK4 step of ``(q̇, v̇) = (q̇(q, v), a(q, v))`` in one native call.
 
     The joint force at each stage is ``force − k (q − q_ref) − c v``: ``force``, ``gravity`` and
-    ``external`` are held over the step; ``stiffness`` (per joint, hinge and slide joints only:
-    the springs of ball and free joints are not generated), ``reference`` (``(nq,)``) and
-    ``damping`` (per DoF) default to none. Returns ``(q1, v1, k1q, k1v, k4q, k4v, work)``: the
+    ``external`` are held over the step; ``stiffness`` (per joint; ball and free joints: a
+    spring on the rotation vector from the reference orientation, as :class:`jaxbody.JointSprings`),
+    ``reference`` (``(nq,)``) and ``damping`` (per DoF) default to none. Returns ``(q1, v1, k1q, k1v, k4q, k4v, work)``: the
     state after the step (quaternions not renormalised), the increments ``h·f`` of the first
     and last stage (the end slopes of the step's cubic Hermite dense output), and ``work =
     (Δw, k1w, k4w)``: the dampers' work over the step by the same RK4 rule and its first and
@@ -1171,8 +1266,6 @@ def rk4_step(
     h = jnp.asarray(h, dtype)
     force = jnp.zeros(model.nv, dtype) if force is None else jnp.asarray(force, dtype)
     gravity = jnp.zeros(3, dtype) if gravity is None else jnp.asarray(gravity, dtype)
-    if stiffness is not None and np.any([k.quaternion is not None for k, *_ in model.joints.kind_groups()]):
-        raise ValueError("rk4_step: joint springs are generated for hinge and slide joints only; this tree has ball or free joints")
     stiffness = jnp.zeros(model.joints.n_joint, dtype) if stiffness is None else jnp.asarray(stiffness, dtype)
     reference = jnp.zeros(model.nq, dtype) if reference is None else jnp.asarray(reference, dtype)
     damping = jnp.zeros(model.nv, dtype) if damping is None else jnp.asarray(damping, dtype)

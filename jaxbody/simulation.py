@@ -191,8 +191,7 @@ def _native_rk4_step(terms, args, y0):
     """The whole RK4 step as one native call (:func:`jaxbody.native.rk4_step`), where it computes
     exactly what the four stages would: ``simulate``'s own vector field (not the augmented one of
     a backsolve adjoint) for a scene whose forward dynamics is the native kernel and whose
-    effects are gravity, joint dampers and joint springs (springs on trees of hinge and slide
-    joints only): nothing that depends on time. Returns ``(t0, t1, y0) -> (y1, k)`` or ``None``."""
+    effects are gravity, joint dampers and joint springs: nothing that depends on time. Returns ``(t0, t1, y0) -> (y1, k)`` or ``None``."""
     from .effects import Gravity, JointDampers, JointSprings
     from .kernels import resolve_kernel
     from .native import rk4_step
@@ -220,8 +219,6 @@ def _native_rk4_step(terms, args, y0):
     if len(springs) > 1 or len(dampers) > 1 or resolve_kernel(scene.system, getattr(scene, "kernel", None)) != "native":
         return None
     model = scene.system
-    if springs and any(kind.quaternion is not None for kind, *_ in model.joints.kind_groups()):
-        return None
     if len(y0) == 3 and (not slots or not dampers or len(slots) != 1):
         return None  # a work vector whose slots are not the dampers' alone
     dtype = y0[1].dtype

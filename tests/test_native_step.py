@@ -23,16 +23,14 @@ pytestmark = pytest.mark.filterwarnings("ignore:from_mjcf")
 
 
 def _reference_step(model, q, v, h, force, gravity, stiffness, reference, damping):
-    """RK4 of (q̇, v̇, ẇ) in JAX on the vectorised kernel; springs on hinge/slide joints."""
-    hinge = np.zeros(model.nv, bool)
-    for kind, _, qa, da in model.joints.kind_groups():
-        if kind.quaternion is None:
-            hinge[da] = True
-    qidx = np.asarray(model.joints.qposadr)[np.asarray(model.joints.dof_joint)]
-    kdof = jnp.asarray(stiffness)[np.asarray(model.joints.dof_joint)]
+    """RK4 of (q̇, v̇, ẇ) in JAX on the vectorised kernel, springs from the kernels' own
+    per-kind spring displacements (rotation vectors for ball and free joints)."""
+    springy = eqx.tree_at(lambda m: (m.joint_stiffness, m.qpos_spring), model, (stiffness, reference))
 
     def field(q, v):
-        spring = jnp.where(hinge, -kdof * (q[qidx] - reference[qidx]), 0.0)
+        spring = jnp.zeros_like(v)
+        for dofs, disp, k in kernels._spring_terms(springy, q):
+            spring = spring.at[dofs].add(-k[:, None] * disp)
         damper = -damping * v
         a = kernels.acceleration(model, q, v, force + spring + damper, gravity=gravity, kernel="vectorised")
         return h * qpos_rate(model, q, v), h * a, h * jnp.dot(damper, v)
@@ -58,7 +56,7 @@ def _inputs(model, rng, springs):
     v = jnp.asarray(rng.standard_normal(model.nv))
     force = jnp.asarray(rng.standard_normal(model.nv))
     stiffness = jnp.asarray(rng.uniform(1.0, 3.0, model.joints.n_joint)) if springs else jnp.zeros(model.joints.n_joint)
-    reference = jnp.asarray(model.qpos0) + 0.1
+    reference = jb.normalize_qpos(model, jnp.asarray(model.qpos0) + 0.1)
     damping = jnp.asarray(rng.uniform(0.1, 0.5, model.nv))
     return q, v, force, stiffness, reference, damping
 
@@ -71,11 +69,10 @@ def _close(x, y, tol=1e-10):
 
 def _step_and_reference(name):
     model = dict(_models())[name]
-    springs = name == "chain"  # springs are generated for hinge and slide joints only
     rng = np.random.default_rng(3)
-    q, v, force, k, r, d = _inputs(model, rng, springs)
+    q, v, force, k, r, d = _inputs(model, rng, True)
     h, g = 0.01, jnp.asarray(model.gravity)
-    passive = dict(stiffness=k, reference=r) if springs else {}
+    passive = dict(stiffness=k, reference=r)
 
     def step(q, v, force, d):
         return native.rk4_step(model, q, v, h, force, gravity=g, damping=d, **passive)
@@ -86,7 +83,8 @@ def _step_and_reference(name):
     return model, rng, step, ref, (q, v, force, d)
 
 
-@pytest.mark.parametrize("name", ["chain", "free_ball"])
+# the chain's values are also checked through simulate (test_simulate_takes_the_native_step...)
+@pytest.mark.parametrize("name", [pytest.param("chain", marks=pytest.mark.slow), "free_ball"])
 def test_native_step_equals_rk4_on_the_vectorised_kernel(name):
     """Values, single and under vmap."""
     model, _, step, ref, (q, v, force, d) = _step_and_reference(name)
@@ -96,7 +94,10 @@ def test_native_step_equals_rk4_on_the_vectorised_kernel(name):
     _close(batch(step)(qs, v, force, d), batch(ref)(qs, v, force, d), 1e-12)
 
 
-@pytest.mark.parametrize("name", ["chain", pytest.param("free_ball", marks=pytest.mark.slow)])  # free_ball: about 60 s
+# about 35 s (chain) and 60 s (free_ball): the default job checks the step's derivative programs
+# through a rollout gradient and forward-mode Jacobian (test_rollout_gradient_through_the_native_step)
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["chain", "free_ball"])
 def test_native_step_derivatives_equal_the_reference(name):
     """Forward mode along a random direction of (q, v, force, damping) (the step's generated
     forward-mode program, and the JAX path for the damping), reverse mode of a random cotangent
@@ -122,12 +123,6 @@ def test_native_step_in_float32_stays_near_float64():
     assert out[1][0].dtype == jnp.float32
     for a32, a64 in zip(out[1], out[0]):
         assert float(jnp.max(jnp.abs(a32.astype(jnp.float64) - a64))) <= 1e-4 * max(1.0, float(jnp.max(jnp.abs(a64))))
-
-
-def test_springs_on_quaternion_joints_are_refused():
-    model = dict(_models())["free_ball"]
-    with pytest.raises(ValueError, match="hinge and slide joints only"):
-        native.rk4_step(model, model.qpos0, jnp.zeros(model.nv), 0.01, stiffness=jnp.ones(model.joints.n_joint))
 
 
 def test_simulate_takes_the_native_step_and_equals_the_vectorised_kernel(monkeypatch):
