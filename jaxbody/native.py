@@ -74,7 +74,7 @@ __all__ = ["MAX_DOFS", "applies", "available", "forward_dynamics", "parameter_ve
 #: does not grow with the tree) serves.
 MAX_DOFS = 24
 
-_lock = threading.Lock()
+_lock = threading.RLock()
 
 
 # ----------------------------------------------------------------------------- symbolic scalars
@@ -404,9 +404,11 @@ _KERNEL = r"""
 #include <cmath>
 #include <type_traits>
 @COMMON@
-// states per block: one vector register of lanes (AVX-512 where the processor has it: about
-// 1.4x (float64) and 1.6x (float32) the throughput of 256-bit lanes on an AMD EPYC)
-#if defined(__AVX512F__)
+// states per block: one vector register of lanes. Two builds of each program: 256-bit lanes
+// for single states and small batches, and (where the processor has AVX-512) 512-bit lanes for
+// batches, about 1.4x (float64) and 1.6x (float32) the throughput of 256-bit lanes on an AMD
+// EPYC, whose 512-bit operations cost two 256-bit ones (so a single state is slower in them)
+#if defined(__AVX512F__) && @WIDE@
 constexpr int VECTOR_BYTES = 64;
 #else
 constexpr int VECTOR_BYTES = 32;
@@ -914,20 +916,32 @@ class _Kernel:
         self.nv, self.nq, self.dtype, self.mode = joints.nv, joints.nq, np.dtype(dtype), mode
         self.widths = _widths(joints, mode)
         self.target = _handler(self.dtype)
-        source = _generate(tree, joints, with_external, self.dtype, mode)
-        lib = ctypes.cdll.LoadLibrary(str(_build(source, mode)))
-        _loaded.append(lib)
-        self.address = ctypes.cast(lib.jaxbody_range, ctypes.c_void_p).value
+        self.source = _generate(tree, joints, with_external, self.dtype, mode)
+        self._addresses = {}
+        self.address(False)  # built now: a build error shows where the kernel is first used
         if mode in ("fd", "rk4"):
             self.batched = self._batched_call()
+
+    def address(self, wide: bool) -> int:
+        """The compiled program with 512-bit lanes (``wide``, where AVX-512 exists) or 256-bit
+        ones; each built on first use."""
+        if wide not in self._addresses:
+            with _lock:
+                source = self.source.replace("@WIDE@", "1" if wide else "0")
+                lib = ctypes.cdll.LoadLibrary(str(_build(source, self.mode + ("_wide" if wide else ""))))
+                _loaded.append(lib)
+                self._addresses[wide] = ctypes.cast(lib.jaxbody_range, ctypes.c_void_p).value
+        return self._addresses[wide]
 
     def call(self, *args) -> list:
         """``args``: ``(B_i, n_i)`` arrays with ``B_i`` 1 or the batch size; returns ``(B, width)`` arrays."""
         batch = max(a.shape[0] for a in args)
         out = [jax.ShapeDtypeStruct((batch, w), self.dtype) for w in self.widths]
         fn = jax.ffi.ffi_call(self.target, out, vmap_method="sequential")
-        # every lane of a SIMD register is one state: the kernel gathers W states' inputs
-        return fn(*args, kernel=np.int64(self.address), threads=np.int64(threads()))
+        # every lane of a SIMD register is one state: the kernel gathers W states' inputs; the
+        # batch size is static here, so the lane width is chosen when the call is traced
+        address = self.address(batch >= WIDE_BATCH and _has_avx512())
+        return fn(*args, kernel=np.int64(address), threads=np.int64(threads()))
 
     def _batched_call(self):
         @jax.custom_batching.custom_vmap
@@ -941,6 +955,15 @@ class _Kernel:
             return tuple(o.reshape(axis_size, inner, o.shape[-1]) for o in outs), tuple(True for _ in outs)
 
         return batched
+
+
+#: Smallest batch a call runs with 512-bit lanes (where the processor has AVX-512).
+WIDE_BATCH = 16
+
+
+@functools.cache
+def _has_avx512() -> bool:
+    return " avx512f" in _cpu_signature()
 
 
 @functools.lru_cache(maxsize=256)
