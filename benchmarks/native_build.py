@@ -28,7 +28,7 @@ from dynamics import model_path  # noqa: E402
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--models", default="panda,chain7,chain12,chain20", help="robots of jaxbody/models or chainN")
-    p.add_argument("--modes", default="fd,jvp,vjp")
+    p.add_argument("--modes", default="fd,jvp,vjp", help="comma-separated subset of native.MODES (fd, jvp, vjp, rk4, rk4_jvp, rk4_vjp)")
     p.add_argument("--out", default=str(RESULTS))
     p.add_argument("--name", default="native_build")
     args = p.parse_args(argv)
@@ -52,7 +52,9 @@ def main(argv=None):
                 warnings.simplefilter("ignore")
                 model = jb.from_mjcf(str(path))
             for mode in args.modes.split(","):
-                source = native._generate(model.tree, model.joints, False, np.float64, mode)
+                # the 256-bit-lane build (single states and small batches; batches of
+                # native.WIDE_BATCH and more get a second, 512-bit build where AVX-512 exists)
+                source = native._generate(model.tree, model.joints, False, np.float64, mode).replace("@WIDE@", "0")
                 t = time.perf_counter()
                 native._build(source, f"probe_{mode}")
                 seconds = time.perf_counter() - t
