@@ -199,3 +199,17 @@ def test_native_build_smoke(tmp_path):
     assert fd["nv"] == 2 and all(r["compile_s"] > 0 for r in rec["rows"])
     assert jvp["lines"] > fd["lines"] and vjp["lines"] > fd["lines"]  # the derivative programs contain the forward one
     assert "| chain2 | 2 | vjp |" in (tmp_path / "rec.md").read_text()
+
+
+@pytest.mark.slow  # builds the Panda arm's RK4 step in both lane widths
+def test_step_kernel_smoke(tmp_path):
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    cmd = [sys.executable, str(BENCH / "step_kernel.py"), "--models", "panda", "--batches", "16", "--min-time", "0.01",
+           "--out", str(tmp_path), "--name", "rec"]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env, cwd=REPO)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    rec = json.loads((tmp_path / "rec.json").read_text())
+    assert [r["piece"] for r in rec["rows"]] == ["kernel", "simulate"]
+    assert all(r["float64_ns"] > 0 and r["float32_ns"] > 0 and r["ratio"] > 0 for r in rec["rows"])
+    assert "| panda | 16 | kernel |" in (tmp_path / "rec.md").read_text()

@@ -111,6 +111,7 @@ def _ball_tree():
     return b.build()
 
 
+@pytest.mark.slow  # about 45 s; the planar and hinge-tree design tests cover the default job
 def test_spatial_ball_tree_block_matrix_becomes_block_diagonal():
     model = _ball_tree()
     assert design.required_bodies(model) == (1, 2, 3)

@@ -137,6 +137,7 @@ def test_rolling_disk_against_sympy_kane():
         np.testing.assert_allclose(np.asarray(r.xdot), sol[5:], rtol=1e-10, atol=1e-10)
 
 
+@pytest.mark.slow  # about 50 s; the disk's other reaction tests cover the default job
 def test_reactions_equal_newton_along_a_solution():
     """Λ and N equal m·a_C minus gravity along a rolling and a skating trajectory."""
     for s, x0 in (

@@ -135,6 +135,7 @@ def smooth_ice_rough_phases(x_ice=0.5, x_rough=1.2):
     ]
 
 
+@pytest.mark.slow  # about 45 s; the Maggi switching tests cover the default job
 def test_smooth_ice_rough_run():
     phases = smooth_ice_rough_phases()
     q0 = jnp.array([0.0, 0.0, 0.3, 1.3, 0.0])

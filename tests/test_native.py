@@ -290,6 +290,7 @@ print(' '.join(repr(float(x)) for x in np.ravel(a)))
     assert np.max(np.abs(a32 - a64)) <= 1e-4 * max(1.0, np.abs(a64).max())
 
 
+@pytest.mark.slow  # about 50 s (Panda's generated RK4 step); test_native_step.py covers simulate on the native kernel
 def test_simulate_with_the_native_kernel_equals_the_vectorised_one(models_dir):
     from jaxbody import simulation
 

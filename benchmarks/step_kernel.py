@@ -1,0 +1,126 @@
+"""How much of a batched RK4 step is the generated step itself, in float64 and float32 (issue 7, T5)?
+
+For each model and batch this times, per state and step:
+
+* ``kernel``: a jitted ``lax.fori_loop`` of ``jaxbody.native.rk4_step`` over the batch (one
+  native call per step and nothing else: the generated program, the FFI call, the thread pool);
+* ``simulate``: ``jb.simulate(jb.scene(model, kernel="auto"), ..., solver="rk4")`` vmapped
+  over the same batch, the model a traced argument as in ``throughput.py`` (the same step plus
+  diffrax's loop, its bookkeeping on the batch and the saved state),
+
+in float64 and float32 in one process (x64 on; the float32 model's state and step are float32,
+diffrax's time is float64), and the float32/float64 ratio of each: the kernel's ratio is what
+the precision buys, the gap to the simulate ratio is the part of the step that does not shrink
+with it.
+
+    .venv/bin/python benchmarks/step_kernel.py [--models panda,anymal_c] [--batches 1024,8192]
+
+Writes ``benchmarks/results/step_kernel.{md,json}``.
+"""
+
+import argparse
+import json
+import os
+import sys
+
+sys.path.insert(0, os.path.dirname(__file__))
+from _common import RESULTS, load_average, markdown_table, stamp, stamp_markdown, time_per_call  # noqa: E402
+
+STEPS = 50
+DT = 1e-3
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--models", default="panda,anymal_c", help="robots shipped in jaxbody/models")
+    p.add_argument("--batches", default="1024,8192")
+    p.add_argument("--min-time", type=float, default=0.5)
+    p.add_argument("--out", default=str(RESULTS))
+    p.add_argument("--name", default="step_kernel")
+    args = p.parse_args(argv)
+    os.environ.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    rec = {"stamp": stamp(), "steps": STEPS, "rows": []}
+
+    import pathlib
+    import warnings
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import diffrax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import jaxbody as jb
+    from jaxbody import native
+
+    for name in args.models.split(","):
+        for batch in (int(b) for b in args.batches.split(",")):
+            per = {}
+            for dtype in (jnp.float64, jnp.float32):
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    model = jb.from_mjcf(str(pathlib.Path(jb.__file__).parent / "models" / f"{name}.xml"), dtype=dtype)
+                rng = np.random.default_rng(0)
+                q = jax.vmap(lambda x: jb.normalize_qpos(model, x))(
+                    jnp.asarray(np.asarray(model.qpos0) + 0.3 * rng.standard_normal((batch, model.nq)), dtype))
+                v = jnp.asarray(rng.standard_normal((batch, model.nv)), dtype)
+                scene = jb.scene(model, kernel="native")
+                effects = {type(e).__name__: e for e in scene.effects}
+                passive = {}
+                if "JointSprings" in effects:
+                    passive.update(stiffness=effects["JointSprings"].stiffness, reference=effects["JointSprings"].reference)
+                if "JointDampers" in effects:
+                    passive.update(damping=effects["JointDampers"].damping)
+                gravity = jnp.asarray(model.gravity, dtype)
+
+                def kernel_loop(q, v):
+                    def body(i, s):
+                        q1, v1 = native.rk4_step(model, s[0], s[1], DT, gravity=gravity, **passive)[:2]
+                        return jb.normalize_qpos(model, q1), v1
+
+                    return jax.lax.fori_loop(0, STEPS, body, (q, v))
+
+                def rollout(model, q0, v0):
+                    sol = jb.simulate(jb.scene(model, kernel="auto"), q0, v0, STEPS * DT, solver="rk4", dt0=DT,
+                                      saveat=diffrax.SaveAt(t1=True), max_steps=STEPS + 8)
+                    return sol.q[-1], sol.v[-1]
+
+                fns = {
+                    "kernel": (jax.jit(jax.vmap(kernel_loop)), (q, v)),
+                    "simulate": (jax.jit(jax.vmap(rollout, in_axes=(None, 0, 0))), (model, q, v)),
+                }
+                for piece, (f, a) in fns.items():
+                    jax.block_until_ready(f(*a))
+                    t = time_per_call(lambda f=f, a=a: jax.block_until_ready(f(*a)), min_time=args.min_time)["median_s"]
+                    ns = 1e9 * t / (batch * STEPS)
+                    per[(piece, dtype.__name__)] = ns
+                    print(f"{name:9s} B={batch:6d} {dtype.__name__:8s} {piece:9s} {ns:8.1f} ns/state-step", flush=True)
+            for piece in ("kernel", "simulate"):
+                rec["rows"].append({"model": name, "batch": batch, "piece": piece, "float64_ns": per[(piece, "float64")],
+                                    "float32_ns": per[(piece, "float32")],
+                                    "ratio": per[(piece, "float64")] / per[(piece, "float32")]})
+
+    rec["stamp"]["load_average_end"] = load_average()
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{args.name}.json").write_text(json.dumps(rec, indent=1))
+    rows = [(r["model"], r["batch"], r["piece"], f"{r['float64_ns']:.1f}", f"{r['float32_ns']:.1f}", f"{r['ratio']:.2f}")
+            for r in rec["rows"]]
+    md = [
+        "# The generated RK4 step alone and inside jb.simulate, float64 and float32",
+        "",
+        stamp_markdown(rec["stamp"]),
+        "",
+        f"Nanoseconds per state and step, {STEPS} steps per call, dt = {DT}. `kernel`: a jitted "
+        "`lax.fori_loop` of `jaxbody.native.rk4_step` over the batch. `simulate`: `jb.simulate` "
+        "(RK4, the model a traced argument) vmapped over the batch. Ratio: float64 time / float32 time.",
+        "",
+        markdown_table(["model", "batch", "piece", "float64 ns", "float32 ns", "float32 speed-up"], rows),
+        "",
+    ]
+    (out / f"{args.name}.md").write_text("\n".join(md))
+
+
+if __name__ == "__main__":
+    main()
