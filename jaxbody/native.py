@@ -1126,39 +1126,45 @@ def _forward_dynamics(kernel, model, q, v, force, gravity, external):
     return kernel.batched(*_rows(model, q, v, force, gravity, external))[0][0]
 
 
-def _forward_dynamics_jvp(kernel, primals, tangents):
-    # value: the native call. Tangent: along (q, v, force) by the generated forward-mode
-    # program (transposed to the generated reverse-mode one in reverse mode); along the
-    # model's parameters, gravity and loads by the vectorised kernel, which computes the same
-    # function. Only the inputs that carry a tangent are differentiated.
-    out = _forward_dynamics(kernel, *primals)
-    model, q, v, force, gravity, external = primals
+def _split_jvp(kernel, mode, rows, out, primals, tangents, reference):
+    """The tangent of a native program's result: along (q, v, force) by its generated
+    forward-mode program ``mode`` through the linear primitive (transposed to its reverse-mode
+    program in reverse mode); along every other input (parameters, gravity, loads, ...) by
+    ``reference``, the same function written in JAX. Only inputs that carry a tangent are
+    differentiated. ``out``: the results (a tuple), ``rows``: the program's residual operands."""
+    model, q, v, force = primals[:4]
     leaves, treedef = jax.tree_util.tree_flatten(primals)
     dleaves = treedef.flatten_up_to(tangents)
     live = [i for i, d in enumerate(dleaves) if not isinstance(d, SymbolicZero)]
-    tangent = None
     n_model = len(jax.tree_util.tree_leaves(model))
     state = [n_model, n_model + 1, n_model + 2]  # q, v, force
-    native_state = kernel.nv <= MAX_DERIVATIVE_DOFS
-    if native_state and any(i in live for i in state):
+    tangent = None
+    if kernel.nv <= MAX_DERIVATIVE_DOFS and any(i in live for i in state):
         lin = []
         for i, x in zip(state, (q, v, force)):
             d = dleaves[i]
             lin.append(jnp.zeros((1, x.size), x.dtype) if isinstance(d, SymbolicZero) else jnp.reshape(d, (1, -1)))
         params = dict(tree=kernel.tree, joints=kernel.joints, with_external=kernel.with_external, dtype=kernel.dtype)
-        tangent = _linear(*_rows(*primals), *lin, mode="jvp", **params)[0][0]
+        tangent = tuple(t[0] for t in _linear(*rows, *lin, mode=mode, **params))
         live = [i for i in live if i not in state]
     if not live:
-        return out, jnp.zeros_like(out) if tangent is None else tangent
+        return tuple(jnp.zeros_like(o) for o in out) if tangent is None else tangent
 
     def of_live(*xs):
         full = list(leaves)
         for i, x in zip(live, xs):
             full[i] = x
-        return _reference(*jax.tree_util.tree_unflatten(treedef, full))
+        return reference(*jax.tree_util.tree_unflatten(treedef, full))
 
     _, rest = jax.jvp(of_live, tuple(leaves[i] for i in live), tuple(dleaves[i] for i in live))
-    return out, rest if tangent is None else tangent + rest
+    return rest if tangent is None else tuple(a + b for a, b in zip(tangent, rest))
+
+
+def _forward_dynamics_jvp(kernel, primals, tangents):
+    # value: the native call; tangent: _split_jvp, the rest from the vectorised kernel
+    out = _forward_dynamics(kernel, *primals)
+    (tangent,) = _split_jvp(kernel, "jvp", _rows(*primals), (out,), primals, tangents, lambda *a: (_reference(*a),))
+    return out, tangent
 
 
 _forward_dynamics.defjvp(_forward_dynamics_jvp, symbolic_zeros=True)
@@ -1217,37 +1223,12 @@ def _rk4_step(kernel, fd_kernel, model, q, v, force, gravity, external, h, stiff
 
 
 def _rk4_step_jvp(kernel, fd_kernel, primals, tangents):
-    # value: the native step. Tangent along (q, v, force): the generated forward-mode program of
-    # the whole step (transposed to its reverse-mode program); along anything else (parameters,
-    # gravity, loads, h, springs, dampers): the step written in JAX around the native forward
-    # dynamics
+    # value: the native step; tangent: _split_jvp with the step's generated programs, the rest
+    # (parameters, gravity, loads, h, springs, dampers) from the step written in JAX around the
+    # native forward dynamics
     out = _rk4_step(kernel, fd_kernel, *primals)
-    model, q, v, force = primals[:4]
-    leaves, treedef = jax.tree_util.tree_flatten(primals)
-    dleaves = treedef.flatten_up_to(tangents)
-    live = [i for i, d in enumerate(dleaves) if not isinstance(d, SymbolicZero)]
-    n_model = len(jax.tree_util.tree_leaves(model))
-    state = [n_model, n_model + 1, n_model + 2]  # q, v, force
-    tangent = None
-    if kernel.nv <= MAX_DERIVATIVE_DOFS and any(i in live for i in state):
-        lin = []
-        for i, x in zip(state, (q, v, force)):
-            d = dleaves[i]
-            lin.append(jnp.zeros((1, x.size), x.dtype) if isinstance(d, SymbolicZero) else jnp.reshape(d, (1, -1)))
-        params = dict(tree=kernel.tree, joints=kernel.joints, with_external=kernel.with_external, dtype=kernel.dtype)
-        tangent = tuple(t[0] for t in _linear(*_step_rows(*primals), *lin, mode="rk4_jvp", **params))
-        live = [i for i in live if i not in state]
-    if not live:
-        return out, tuple(jnp.zeros_like(o) for o in out) if tangent is None else tangent
-
-    def of_live(*xs):
-        full = list(leaves)
-        for i, x in zip(live, xs):
-            full[i] = x
-        return _rk4_composed(fd_kernel, *jax.tree_util.tree_unflatten(treedef, full))
-
-    _, rest = jax.jvp(of_live, tuple(leaves[i] for i in live), tuple(dleaves[i] for i in live))
-    return out, rest if tangent is None else tuple(a + b for a, b in zip(tangent, rest))
+    reference = functools.partial(_rk4_composed, fd_kernel)
+    return out, _split_jvp(kernel, "rk4_jvp", _step_rows(*primals), out, primals, tangents, reference)
 
 
 _rk4_step.defjvp(_rk4_step_jvp, symbolic_zeros=True)
