@@ -20,9 +20,27 @@ import time
 REPO = pathlib.Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results"
 
+
+def _load_xla_flags():
+    # jaxbody/_xla.py by path: importing the package would import JAX before the flags are set
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("_jaxbody_xla", REPO / "jaxbody" / "_xla.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+_xla = _load_xla_flags()
+#: XLA_FLAGS the benchmarks add unless told otherwise: the CPU fusion flag on jaxlib 0.10, else "".
+DEFAULT_XLA_FLAGS = _xla.default_xla_flags()
+set_default_xla_flags = _xla.set_default_xla_flags
+
 __all__ = [
     "REPO",
     "RESULTS",
+    "DEFAULT_XLA_FLAGS",
+    "set_default_xla_flags",
     "git_stamp",
     "cpu_model",
     "core_count",
@@ -84,7 +102,8 @@ def _version(dist):
 
 def versions() -> dict:
     """Versions of the packages a benchmark depends on, without importing them."""
-    names = ("jax", "jaxlib", "mujoco", "numpy", "equinox", "pin", "jaxbody")
+    names = ("jax", "jaxlib", "jax-cuda13-plugin", "jax-cuda12-plugin", "mujoco", "mujoco-mjx", "diffrax", "numpy",
+             "equinox", "pin", "jaxbody")
     out = {n: _version(n) for n in names}
     out["python"] = platform.python_version()
     return out
@@ -107,6 +126,16 @@ def mem_available_bytes():
     return None
 
 
+def gpu_model() -> str | None:
+    """``nvidia-smi``'s GPU name, memory and driver, or None where there is none."""
+    try:
+        out = subprocess.run(["nvidia-smi", "--query-gpu=name,memory.total,driver_version", "--format=csv,noheader"],
+                             capture_output=True, text=True, timeout=30)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return "; ".join(line.strip() for line in out.stdout.splitlines() if line.strip()) or None
+
+
 def stamp(argv=None) -> dict:
     """Commit, machine, versions, date and the exact command line of this run."""
     argv = sys.argv if argv is None else argv
@@ -114,6 +143,7 @@ def stamp(argv=None) -> dict:
         **git_stamp(),
         "cpu": cpu_model(),
         "cores": core_count(),
+        "gpu": gpu_model(),
         "versions": versions(),
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "command": shlex.join([sys.executable, *argv]),
@@ -129,8 +159,12 @@ def stamp_markdown(s: dict) -> str:
     lines = [
         f"- commit: `{s['commit']}`{dirty}",
         f"- date: {s['date']}",
-        f"- machine: {s['cpu']}, {s['cores']} cores (host `{s['hostname']}`)",
-        f"- versions: jax {v['jax']}, jaxlib {v['jaxlib']}, mujoco {v['mujoco']}, numpy {v['numpy']}, "
+        f"- machine: {s['cpu']}, {s['cores']} cores (host `{s['hostname']}`)"
+        + (f"; GPU: {s['gpu']}" if s.get("gpu") else ""),
+        f"- versions: jax {v['jax']}, jaxlib {v['jaxlib']}"
+        + (f", jax-cuda13-plugin {v['jax-cuda13-plugin']}" if v.get('jax-cuda13-plugin') else "")
+        + (f", mujoco-mjx {v['mujoco-mjx']}" if v.get('mujoco-mjx') else "")
+        + f", mujoco {v['mujoco']}, numpy {v['numpy']}, "
         f"pinocchio (pin) {v['pin'] or 'absent'}, python {v['python']}",
         f"- XLA_FLAGS: `{s['xla_flags'] or '(unset)'}`",
         f"- load average at start / end: {s['load_average_start']} / {s.get('load_average_end')}",

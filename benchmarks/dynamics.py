@@ -46,7 +46,7 @@ QUICK_MODELS = ("panda", "chain2", "chain20", "chain100")
 DEFAULT_BATCHES = (1, 64, 1024, 8192)
 QUICK_BATCHES = (1, 64, 1024)
 HUGE_BATCH = 65536
-XLA_DEFAULT_FLAG = "--xla_cpu_use_fusion_emitters=false"
+XLA_DEFAULT_FLAG = _common.DEFAULT_XLA_FLAGS  # "" on jaxlib >= 0.11 (jaxbody/_xla.py)
 # a batch whose compiled executable needs more than this fraction of the available memory
 # is not run (it would swap or be killed, and other people share the machine)
 MEMORY_FRACTION = 0.6
@@ -795,7 +795,7 @@ def main(argv=None):
         return 0
 
     env = dict(os.environ)
-    if not args.keep_xla_flags and XLA_DEFAULT_FLAG not in env.get("XLA_FLAGS", ""):
+    if not args.keep_xla_flags and XLA_DEFAULT_FLAG and XLA_DEFAULT_FLAG not in env.get("XLA_FLAGS", ""):
         env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " " + XLA_DEFAULT_FLAG).strip()
     if args.devices > 1:
         env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={args.devices}").strip()

@@ -294,7 +294,7 @@ def main(argv=None):
         worker(json.loads(args.config), _Record(args.result))
         return 0
     env = dict(os.environ)
-    if XLA_DEFAULT_FLAG not in env.get("XLA_FLAGS", ""):
+    if XLA_DEFAULT_FLAG and XLA_DEFAULT_FLAG not in env.get("XLA_FLAGS", ""):
         env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " " + XLA_DEFAULT_FLAG).strip()
     os.environ["XLA_FLAGS"] = env["XLA_FLAGS"]
     stamp = _common.stamp(sys.argv if argv is None else [sys.argv[0], *argv])

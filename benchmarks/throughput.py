@@ -131,6 +131,8 @@ def worker_mujoco(cfg, rec):
 
     # T2: one trajectory, mj_step in a C loop (rollout, 1 thread) and from Python
     ns = cfg["single_steps"]
+    if not ns:
+        return
     r, run, _ = make_rollout(1, ns, 1)
     with r:
         t = _common.time_per_call(run, **rep)
@@ -192,7 +194,9 @@ def worker_jaxbody(cfg, rec):
         # the MjModel MuJoCo runs (springs, dampers, gravity flags honoured), not the file:
         # from_mjcf(path) would keep the joint damping MuJoCo's rollout has switched off
         model = jb.from_mujoco(m, dtype=dtype)
-    rec.data.update(dtype=cfg["dtype"], devices=[str(d) for d in jax.devices()], nq=int(m.nq), nv=int(m.nv))
+    rec.data.update(dtype=cfg["dtype"], devices=[str(d) for d in jax.devices()], nq=int(m.nq), nv=int(m.nv),
+                    device_kind=jax.devices()[0].device_kind, backend=jax.default_backend(),
+                    kernel=jb.kernels.resolve_kernel(model, cfg.get("kernel")))
     rep = dict(min_time=cfg["min_time"], repeats=cfg["repeats"])
 
     def rollout(model, q0, v0, t1):
@@ -206,17 +210,20 @@ def worker_jaxbody(cfg, rec):
         return jnp.asarray(q, dtype), jnp.asarray(v, dtype)
 
     # T4: compile time of forward_dynamics and of one whole simulate, single state
-    q1, v1 = arrays(1, cfg["seed"])
-    _, _, _, t = _compile(jax, lambda mo, q, v: jb.forward_dynamics(mo, q, v, jnp.zeros_like(v)), (model, q1[0], v1[0]))
-    rec.data["compile_forward_dynamics"] = t
+    # (--single-steps 0: neither, e.g. on a GPU, where batches are what is measured)
     ns = cfg["single_steps"]
-    t1 = jnp.asarray(ns * DT, dtype)
-    single_fn, _, out, t = _compile(jax, rollout, (model, q1[0], v1[0], t1))
-    rec.data["single"] = {"compile": t, "steps": int(out[2])}
-    rec.save()
-    tm = _common.time_per_call(lambda: jax.block_until_ready(single_fn(model, q1[0], v1[0], t1)), **rep)
-    rec.data["single"].update(per_step_s=tm["median_s"] / int(out[2]), timing=tm)
-    rec.save()
+    if ns:
+        q1, v1 = arrays(1, cfg["seed"])
+        _, _, _, t = _compile(jax, lambda mo, q, v: jb.forward_dynamics(mo, q, v, jnp.zeros_like(v)),
+                              (model, q1[0], v1[0]))
+        rec.data["compile_forward_dynamics"] = t
+        t1 = jnp.asarray(ns * DT, dtype)
+        single_fn, _, out, t = _compile(jax, rollout, (model, q1[0], v1[0], t1))
+        rec.data["single"] = {"compile": t, "steps": int(out[2])}
+        rec.save()
+        tm = _common.time_per_call(lambda: jax.block_until_ready(single_fn(model, q1[0], v1[0], t1)), **rep)
+        rec.data["single"].update(per_step_s=tm["median_s"] / int(out[2]), timing=tm)
+        rec.save()
 
     rows = rec.data["batches"] = {}
     ndev = cfg["devices"]
@@ -292,7 +299,8 @@ def worker_mjx(cfg, rec):
     import mujoco
 
     m = _rigid_rk4(cfg["path"])
-    rec.data.update(integrator="RK4", dtype="float32", mjx_version=_common._version("mujoco-mjx"))
+    rec.data.update(integrator="RK4", dtype="float32", mjx_version=_common._version("mujoco-mjx"),
+                    devices=[str(d) for d in jax.devices()], device_kind=jax.devices()[0].device_kind)
     # contacts are disabled anyway; without collision pairs MJX also accepts models whose
     # geom pairs it has no collision function for (anymal_c: cylinder-box)
     m.geom_contype[:] = 0
@@ -462,6 +470,20 @@ def compute_targets(results):
                       detail="; ".join(f"{m} B={b}: {r:.3g}x" for m, b, r in ok_rows)))
     else:
         T.append(dict(id="T5", target="float32 throughput >= 1.8x float64", verdict="NOT MEASURED", detail="no float32/float64 pair"))
+    gpu = [d for d in (_get(results["runs"], "panda", impl, "device_kind") for impl in ("jb32", "jb64"))
+           if d and _get(results["runs"], "panda", "jb32", "backend") == "gpu"]
+    if gpu:
+        rows = [(impl, b, steps_per_s(results, "panda", b, impl)) for impl in ("jb32", "jb64") for b in batches]
+        best = max(((impl, b, x) for impl, b, x in rows if x), key=lambda r: r[2], default=None)
+        mjx = {b: steps_per_s(results, "panda", b, "mjx") for b in batches}
+        pairs = [(b, steps_per_s(results, "panda", b, "jb32"), mjx[b]) for b in batches]
+        pairs = [(b, x / y) for b, x, y in pairs if x and y]
+        T.append(dict(id="GPU", target=f"panda RK4 >= 1e7 steps/s on the GPU ({gpu[0]})",
+                      verdict="NOT MEASURED" if best is None else ("MET" if best[2] >= 1e7 else "NOT MET"),
+                      detail="—" if best is None else f"best {best[2]:.3g} steps/s ({best[0]}, B={best[1]})"))
+        T.append(dict(id="GPU", target="jaxbody float32 >= 10x MJX (float32) on the same GPU, panda",
+                      verdict="NOT MEASURED" if not pairs else ("MET" if all(r >= 10 for _, r in pairs) else "NOT MET"),
+                      detail=", ".join(f"B={b}: {r:.3g}x" for b, r in pairs) or "no batch with both"))
     acc = results.get("accuracy", {})
     errs = {m: a["rk4_f32_vs_rk4_f64"] for m, a in acc.items() if "rk4_f32_vs_rk4_f64" in a}
     if errs:
@@ -636,7 +658,8 @@ def parse_args(argv=None):
     p.add_argument("--min-steps", type=int, default=10, help="fewest steps per timed rollout (default 10)")
     p.add_argument("--max-work", type=int, default=200_000,
                    help="cap batch x steps of a timed call: steps = max(min_steps, min(steps, max_work // batch))")
-    p.add_argument("--single-steps", type=int, default=1000, help="steps of the single-trajectory timing (T2)")
+    p.add_argument("--single-steps", type=int, default=1000,
+                   help="steps of the single-trajectory timing (T2); 0 skips it and the T4 compile timings")
     p.add_argument("--kernel", choices=("auto", "native", "unrolled", "vectorised"),
                    help="forward-dynamics kernel of the jaxbody runs: jb.simulate(jb.scene(model, kernel=KERNEL), ...); "
                         "default: the model itself (jaxbody.kernels.DEFAULT_KERNEL)")
@@ -685,12 +708,12 @@ def main(argv=None):
         return 0
 
     env = dict(os.environ)
-    if XLA_DEFAULT_FLAG not in env.get("XLA_FLAGS", ""):
+    if XLA_DEFAULT_FLAG and XLA_DEFAULT_FLAG not in env.get("XLA_FLAGS", ""):
         env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " " + XLA_DEFAULT_FLAG).strip()
     env_jb = dict(env)
     if args.devices > 1:
-        env_jb["XLA_FLAGS"] = (env["XLA_FLAGS"] + f" --xla_force_host_platform_device_count={args.devices}").strip()
-    os.environ["XLA_FLAGS"] = env_jb["XLA_FLAGS"]  # what the jaxbody workers get, for the stamp
+        env_jb["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={args.devices}").strip()
+    os.environ["XLA_FLAGS"] = env_jb.get("XLA_FLAGS", "")  # what the jaxbody workers get, for the stamp
     stamp = _common.stamp(sys.argv if argv is None else [sys.argv[0], *argv])
     args.out.mkdir(parents=True, exist_ok=True)
     results = {"stamp": stamp, "models": args.models, "batches": args.batches, "impls": args.impls,
@@ -723,26 +746,28 @@ def main(argv=None):
                 cmd = [sys.executable, me, "--worker", kind, "--config", json.dumps(cfg), "--result", str(rf)]
                 return _common.run_worker(cmd, timeout=timeout, result_file=rf, env=e)
 
-            if "mujoco" in args.impls:
-                r = runs["mujoco"] = go("mujoco", dict(base, batches=args.batches), args.timeout, env, "mujoco")
-                log(f"{model} MuJoCo ({r['status']}): " + ", ".join(
-                    f"B={b} 1T {_si(_get(r, 'batches', str(b), 'mj1', 'steps_per_s'))} "
-                    f"NT {_si(_get(r, 'batches', str(b), 'mjN', 'steps_per_s'))}" for b in args.batches))
-            for impl, dtype in (("jb64", "float64"), ("jb32", "float32")):
-                if impl in args.impls:
+            for impl in args.impls:  # in the order given: the first ones matter most when time is short
+                if impl == "mujoco":
+                    r = runs["mujoco"] = go("mujoco", dict(base, batches=args.batches), args.timeout, env, "mujoco")
+                    log(f"{model} MuJoCo ({r['status']}): " + ", ".join(
+                        f"B={b} 1T {_si(_get(r, 'batches', str(b), 'mj1', 'steps_per_s'))} "
+                        f"NT {_si(_get(r, 'batches', str(b), 'mjN', 'steps_per_s'))}" for b in args.batches))
+                elif impl in ("jb64", "jb32"):
+                    dtype = {"jb64": "float64", "jb32": "float32"}[impl]
                     r = runs[impl] = go("jaxbody", dict(base, batches=batches, dtype=dtype), args.timeout, env_jb, impl)
                     log(f"{model} {impl} ({r['status']}): single {_get(r, 'single', 'per_step_s')} s/step, " + ", ".join(
                         f"B={b} {_si(_get(r, 'batches', str(b), 'run', 'steps_per_s'))}" for b in batches))
-            if "mjx" in args.impls and model in args.mjx_models:
-                runs["mjx"] = {}
-                for b in args.mjx_batches:
-                    if (model, b) in args.skip:
-                        continue
-                    r = runs["mjx"][str(b)] = go("mjx", dict(base, batch=b), args.mjx_timeout, env, f"mjx-{b}")
-                    log(f"mjx {model} B={b} ({r['status']}): compile {_get(r, 'compile', 'compile_total_s')} s, "
-                        f"{_si(_get(r, 'run', 'steps_per_s'))} steps/s")
-                    if r["status"] == "timeout":
-                        break  # a bigger batch will not compile faster
+                elif impl == "mjx" and model in args.mjx_models:
+                    runs["mjx"] = {}
+                    for b in args.mjx_batches:
+                        if (model, b) in args.skip:
+                            continue
+                        r = runs["mjx"][str(b)] = go("mjx", dict(base, batch=b), args.mjx_timeout, env, f"mjx-{b}")
+                        log(f"mjx {model} B={b} ({r['status']}): compile {_get(r, 'compile', 'compile_total_s')} s, "
+                            f"{_si(_get(r, 'run', 'steps_per_s'))} steps/s")
+                        if r["status"] == "timeout":
+                            break  # a bigger batch will not compile faster
+                write_records(results, args, t_start)  # after each worker: a run cut short keeps what it has
             write_records(results, args, t_start)
 
     md, js, png, plotted = write_records(results, args, t_start)

@@ -302,7 +302,9 @@ def _error_line(command, message):
 def _jax():
     """JAX with float64, set up before its backend starts."""
     # Must precede JAX's backend initialisation (known XLA CPU issue with jax 0.10).
-    os.environ.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    from ._xla import set_default_xla_flags
+
+    set_default_xla_flags()
     import jax
 
     jax.config.update("jax_enable_x64", True)

@@ -1056,10 +1056,11 @@ def cli_balance(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(argv)
         if args.radius is not None and not args.radius > 0:
             raise _UsageError(f"--radius must be positive, got {args.radius}")
-        import os
         import pathlib
 
-        os.environ.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+        from ._xla import set_default_xla_flags
+
+        set_default_xla_flags()
         jax.config.update("jax_enable_x64", True)
         from .cli import MODELS_DIR, ROBOT_MODELS
 

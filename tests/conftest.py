@@ -2,8 +2,13 @@
 
 import os
 import pathlib
+import sys
 
-os.environ.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "jaxbody"))
+from _xla import set_default_xla_flags  # noqa: E402 - the flags must precede JAX's start
+
+sys.path.pop(0)
+set_default_xla_flags()
 
 import jax
 import pytest
