@@ -170,6 +170,8 @@ def stamp_markdown(s: dict) -> str:
         f"- load average at start / end: {s['load_average_start']} / {s.get('load_average_end')}",
         f"- command: `{s['command']}`",
     ]
+    if s.get("note_on_commit"):
+        lines.insert(1, f"- about the commit: {s['note_on_commit']}")
     return "\n".join(lines)
 
 

@@ -427,6 +427,8 @@ def compute_targets(results):
         ok_rows = [(b, x / y) for b, x, y in rows if x and y]
         if model not in results["runs"] or not big:
             verdict, detail = "NOT MEASURED", f"{model} or a batch >= 1024 not in the run"
+        elif not {"jb64", "mujoco"} <= set(results["impls"]):
+            verdict, detail = "NOT MEASURED", "jb64 or mujoco not in --impls"
         elif len(ok_rows) < len(rows):
             verdict = "NOT MET"
             detail = "failed/missing cells at B=" + ",".join(str(b) for b, x, y in rows if not (x and y))
@@ -456,8 +458,13 @@ def compute_targets(results):
                           verdict="NOT MEASURED", detail="chain2 or chain100 missing"))
     if 65536 in batches:
         bad = [m for m in results["runs"] if cell_status(results, m, 65536, "jb64") != "ok"]
-        T.append(dict(id="T4", target="batches of 65536 complete for every model (float64)",
-                      verdict="MET" if not bad else "NOT MET", detail="failed: " + ", ".join(bad) if bad else "all complete"))
+        if "jb64" not in results["impls"]:
+            T.append(dict(id="T4", target="batches of 65536 complete for every model (float64)",
+                          verdict="NOT MEASURED", detail="jb64 not in --impls"))
+        else:
+            T.append(dict(id="T4", target="batches of 65536 complete for every model (float64)",
+                          verdict="MET" if not bad else "NOT MET",
+                          detail="failed: " + ", ".join(bad) if bad else "all complete"))
     else:
         T.append(dict(id="T4", target="batches of 65536 complete for every model", verdict="NOT MEASURED",
                       detail="65536 not in --batches"))
@@ -520,7 +527,8 @@ def write_markdown(results, path):
             def ratio(x, y):
                 return f"{x / y:.3g}" if x and y else "—"
 
-            steps = _get(r, "mujoco", "batches", str(b), "steps") or _get(r, "jb64", "batches", str(b), "steps")
+            steps = (_get(r, "mujoco", "batches", str(b), "steps") or _get(r, "jb64", "batches", str(b), "steps")
+                     or _get(r, "jb32", "batches", str(b), "steps"))
             c64 = _get(r, "jb64", "batches", str(b), "compile", "compile_total_s")
             c32 = _get(r, "jb32", "batches", str(b), "compile", "compile_total_s")
             cx = _get(r, "mjx", str(b), "compile", "compile_total_s")
@@ -530,6 +538,22 @@ def write_markdown(results, path):
                          f"{c64:.3g}" if c64 else "—", f"{c32:.3g}" if c32 else "—", f"{cx:.3g}" if cx else "—"])
     L += [_common.markdown_table(hdr, rows), ""]
 
+    ran_on = sorted({f"{impl} on {_get(r, impl, 'device_kind')} ({_get(r, impl, 'backend')}), kernel "
+                     f"{_get(r, impl, 'kernel')}" for r in results["runs"].values() for impl in ("jb64", "jb32")
+                     if _get(r, impl, "device_kind")})
+    mjx_on = sorted({str(_get(w, "device_kind")) for r in results["runs"].values()
+                     for w in (r.get("mjx") or {}).values() if _get(w, "device_kind")})
+    if ran_on or mjx_on:
+        L += ["Where it ran: " + "; ".join(ran_on + [f"MJX on {d}" for d in mjx_on]) + ".", ""]
+    if not results["single_steps"]:
+        L += ["Single trajectory (T2) and compile of one state (T4): not in this run (`--single-steps 0`).", ""]
+    else:
+        L += _single_section(results)
+    return _finish_markdown(results, path, L)
+
+
+def _single_section(results):
+    L = []
     L += ["## Single trajectory (T2) and compile times (T4)", "",
           f"Unbatched `jax.jit` of `jb.simulate` over {results['single_steps']} RK4 steps, per step; MuJoCo "
           "`mj_step` (RK4) in a C loop (`rollout`, 1 thread, one trajectory) and from a Python loop.", ""]
@@ -548,7 +572,10 @@ def write_markdown(results, path):
     L += [_common.markdown_table(["model", "nv", "jb64 µs/step", "jb32 µs/step", "mj_step C µs", "mj_step Python µs",
                                   "jb64 / mj_step C", "jb64 compile FD s", "jb64 compile simulate s",
                                   "jb32 compile simulate s"], rows), ""]
+    return L
 
+
+def _finish_markdown(results, path, L):
     acc = results.get("accuracy", {})
     if acc:
         L += ["## float32 against float64 (after 1 s)", "",
@@ -680,11 +707,14 @@ def parse_args(argv=None):
     p.add_argument("--models-dir", type=pathlib.Path, default=_common.REPO / "jaxbody" / "models")
     p.add_argument("--out", type=pathlib.Path, default=_common.RESULTS)
     p.add_argument("--name", default="throughput", help="results file stem")
+    p.add_argument("--rerender", type=pathlib.Path,
+                   help="re-analyse a record's JSON (e.g. one made on another machine) and rewrite its md/png "
+                        "(and JSON) under --out/--name; nothing is measured, the stamp is kept")
     p.add_argument("--worker", choices=("mujoco", "jaxbody", "mjx"), help=argparse.SUPPRESS)
     p.add_argument("--config", help=argparse.SUPPRESS)
     p.add_argument("--result", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
-    if args.worker:
+    if args.worker or args.rerender:
         return args
     split = lambda s: [x.strip() for x in s.split(",") if x.strip()]
     args.models = split(args.models)
@@ -705,6 +735,17 @@ def main(argv=None):
     if args.worker:
         rec = _Record(args.result)
         {"mujoco": worker_mujoco, "jaxbody": worker_jaxbody, "mjx": worker_mjx}[args.worker](json.loads(args.config), rec)
+        return 0
+    if args.rerender:
+        results = json.loads(args.rerender.read_text())
+        results["accuracy"] = accuracy_table(results)
+        results["targets"] = compute_targets(results)
+        args.out.mkdir(parents=True, exist_ok=True)
+        md, js, png = (args.out / f"{args.name}.{ext}" for ext in ("md", "json", "png"))
+        js.write_text(json.dumps(results, indent=1, default=str))
+        write_markdown(results, md)
+        write_plot(results, png)
+        print(f"wrote {md}, {js}, {png}")
         return 0
 
     env = dict(os.environ)

@@ -213,3 +213,28 @@ def test_step_kernel_smoke(tmp_path):
     assert [r["piece"] for r in rec["rows"]] == ["kernel", "simulate"]
     assert all(r["float64_ns"] > 0 and r["float32_ns"] > 0 and r["ratio"] > 0 for r in rec["rows"])
     assert "| panda | 16 | kernel |" in (tmp_path / "rec.md").read_text()
+
+
+def test_throughput_rerender_of_the_gpu_records(tmp_path):
+    # The GPU records were measured on a lent machine; --rerender re-analyses them here. The
+    # GPU targets come out of their numbers, and targets a run did not measure say so.
+    env = dict(os.environ, PYTHONPATH=str(REPO), MPLBACKEND="Agg")
+    for name in ("throughput_gpu", "throughput_gpu_vs_mjx"):
+        cmd = [sys.executable, str(BENCH / "throughput.py"), "--rerender", str(BENCH / "results" / f"{name}.json"),
+               "--out", str(tmp_path), "--name", name]
+        p = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env, cwd=REPO)
+        assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+        rec = json.loads((tmp_path / f"{name}.json").read_text())
+        assert rec["stamp"]["gpu"].startswith("NVIDIA") and rec["runs"]["panda"]["jb32"]["backend"] == "gpu"
+        targets = {(t["id"], t["target"][:20]): t for t in rec["targets"]}
+        t1 = targets[("T1", "panda: jaxbody float")]
+        assert t1["verdict"] == "NOT MEASURED"  # no MuJoCo CPU rollout in a GPU run
+        gpu = [t for t in rec["targets"] if t["id"] == "GPU"]
+        assert len(gpu) == 2
+        rate = max(w["run"]["steps_per_s"] for w in rec["runs"]["panda"]["jb32"]["batches"].values())
+        assert gpu[0]["verdict"] == ("MET" if rate >= 1e7 else "NOT MET")
+        mjx = {b: w["run"]["steps_per_s"] for b, w in rec["runs"]["panda"]["mjx"].items()}
+        ratios = [rec["runs"]["panda"]["jb32"]["batches"][b]["run"]["steps_per_s"] / y for b, y in mjx.items()]
+        assert gpu[1]["verdict"] == ("MET" if min(ratios) >= 10 else "NOT MET")
+        md = (tmp_path / f"{name}.md").read_text()
+        assert "kernel" in md and "Where it ran: jb32 on NVIDIA H200" in md
