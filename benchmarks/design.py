@@ -14,9 +14,11 @@ import json
 import os
 import sys
 
-os.environ.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _common import RESULTS, load_average, markdown_table, stamp, stamp_markdown  # noqa: E402
+from _common import set_default_xla_flags  # noqa: E402
+
+set_default_xla_flags()  # before JAX starts: the CPU fusion flag on jaxlib 0.10
 
 
 def main(argv=None):

@@ -18,7 +18,15 @@ import os
 import sys
 
 sys.path.insert(0, os.path.dirname(__file__))
-from _common import RESULTS, load_average, markdown_table, stamp, stamp_markdown, time_per_call  # noqa: E402
+from _common import (  # noqa: E402
+    RESULTS,
+    load_average,
+    markdown_table,
+    set_default_xla_flags,
+    stamp,
+    stamp_markdown,
+    time_per_call,
+)
 
 
 def main(argv=None):
@@ -30,7 +38,7 @@ def main(argv=None):
     p.add_argument("--name", default="gradient_profile")
     p.add_argument("--no-rollout", action="store_true", help="skip the per-step pieces of a 1000-step rollout")
     args = p.parse_args(argv)
-    os.environ.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    set_default_xla_flags()  # before JAX starts: the CPU fusion flag on jaxlib 0.10
     rec = {"stamp": stamp(), "model": args.model, "rows": []}
 
     import pathlib

@@ -24,9 +24,10 @@ import sys
 import tempfile
 import time
 
-os.environ.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import _common  # noqa: E402
+
+_common.set_default_xla_flags()  # before JAX starts: the CPU fusion flag on jaxlib 0.10
 from dynamics import _mujoco_rigid, model_path  # noqa: E402
 
 KERNELS = ("unrolled", "vectorised", "auto")

@@ -24,7 +24,15 @@ import os
 import sys
 
 sys.path.insert(0, os.path.dirname(__file__))
-from _common import RESULTS, load_average, markdown_table, stamp, stamp_markdown, time_per_call  # noqa: E402
+from _common import (  # noqa: E402
+    RESULTS,
+    load_average,
+    markdown_table,
+    set_default_xla_flags,
+    stamp,
+    stamp_markdown,
+    time_per_call,
+)
 
 STEPS = 50
 DT = 1e-3
@@ -38,7 +46,7 @@ def main(argv=None):
     p.add_argument("--out", default=str(RESULTS))
     p.add_argument("--name", default="step_kernel")
     args = p.parse_args(argv)
-    os.environ.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    set_default_xla_flags()  # before JAX starts: the CPU fusion flag on jaxlib 0.10
     rec = {"stamp": stamp(), "steps": STEPS, "rows": []}
 
     import pathlib

@@ -14,6 +14,7 @@ import subprocess
 import sys
 
 import pytest
+from jaxbody._xla import default_xla_flags
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 BENCH = REPO / "benchmarks"
@@ -21,7 +22,7 @@ BENCH = REPO / "benchmarks"
 
 def _run(script, out, *args, timeout=300):
     env = dict(os.environ, PYTHONPATH=str(REPO), MPLBACKEND="Agg")
-    env.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    env.setdefault("XLA_FLAGS", default_xla_flags())
     env.pop("JAX_ENABLE_X64", None)
     cmd = [sys.executable, str(BENCH / script), "--out", str(out), "--name", "rec",
            "--min-time", "0.01", "--repeats", "1", *args]
@@ -98,7 +99,7 @@ def test_throughput_and_gradients_full_smoke(tmp_path):
 @pytest.mark.slow  # about 35 s: compiles the unrolled kernel; throughput.py's smoke test stays in the default suite
 def test_kernels_benchmark_smoke(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    env.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    env.setdefault("XLA_FLAGS", default_xla_flags())
     cmd = [sys.executable, str(BENCH / "kernels.py"), "--out", str(tmp_path), "--name", "rec",
            "--models", "chain2", "--batch", "4", "--steps", "3", "--min-time", "0.01",
            "--simulate-models", "chain2"]
@@ -116,7 +117,7 @@ def test_kernels_benchmark_smoke(tmp_path):
 
 def test_effects_benchmark_smoke(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    env.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    env.setdefault("XLA_FLAGS", default_xla_flags())
     cmd = [sys.executable, str(BENCH / "effects.py"), "--out", str(tmp_path), "--tag", "rec",
            "--only", "chain7:planar", "--max-sets", "2", "--batch", "4", "--min-time", "0.01"]
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env, cwd=REPO)
@@ -136,7 +137,7 @@ def test_effects_benchmark_smoke(tmp_path):
 
 def _run_small(script, tmp_path, *args, timeout=300):
     env = dict(os.environ, PYTHONPATH=str(REPO), MPLBACKEND="Agg")
-    env.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    env.setdefault("XLA_FLAGS", default_xla_flags())
     cmd = [sys.executable, str(BENCH / script), "--smoke", "--out", str(tmp_path), "--name", "rec", *args]
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env, cwd=REPO)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
@@ -176,7 +177,7 @@ def test_identify_benchmark_smoke(tmp_path):
 
 def test_gradient_profile_smoke(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    env.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    env.setdefault("XLA_FLAGS", default_xla_flags())
     cmd = [sys.executable, str(BENCH / "gradient_profile.py"), "--kernels", "vectorised", "--min-time", "0.01", "--no-rollout",
            "--out", str(tmp_path), "--name", "rec"]
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env, cwd=REPO)
@@ -189,7 +190,7 @@ def test_gradient_profile_smoke(tmp_path):
 
 def test_native_build_smoke(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    env.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    env.setdefault("XLA_FLAGS", default_xla_flags())
     cmd = [sys.executable, str(BENCH / "native_build.py"), "--models", "chain2", "--out", str(tmp_path), "--name", "rec"]
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env, cwd=REPO)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
@@ -204,7 +205,7 @@ def test_native_build_smoke(tmp_path):
 @pytest.mark.slow  # builds the Panda arm's RK4 step in both lane widths
 def test_step_kernel_smoke(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    env.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    env.setdefault("XLA_FLAGS", default_xla_flags())
     cmd = [sys.executable, str(BENCH / "step_kernel.py"), "--models", "panda", "--batches", "16", "--min-time", "0.01",
            "--out", str(tmp_path), "--name", "rec"]
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env, cwd=REPO)

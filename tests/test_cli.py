@@ -22,6 +22,7 @@ from scipy.integrate import solve_ivp
 
 import jaxbody
 from jaxbody.cli import EXAMPLES, MODELS_DIR, ROBOT_MODELS, main
+from jaxbody._xla import default_xla_flags
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
@@ -47,7 +48,7 @@ PENDULUM_XML = """<mujoco model="test pendulum">
 def run_cli(*args, cwd=None, timeout=300, **popen):
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
-    env.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    env.setdefault("XLA_FLAGS", default_xla_flags())
     env["MPLBACKEND"] = "Agg"
     env.pop("JAXBODY_DEBUG", None)
     cmd = [sys.executable, "-m", "jaxbody.cli", *map(str, args)]

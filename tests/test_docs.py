@@ -7,6 +7,7 @@ import subprocess
 import sys
 
 import pytest
+from jaxbody._xla import default_xla_flags
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
@@ -74,7 +75,7 @@ def test_multihost_script_runs_on_localhost(tmp_path):
     with socket.socket() as s:  # a free port
         s.bind(("localhost", 0))
         port = s.getsockname()[1]
-    env = dict(os.environ, XLA_FLAGS="--xla_cpu_use_fusion_emitters=false")
+    env = dict(os.environ, XLA_FLAGS=default_xla_flags())
     env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
     procs = [subprocess.Popen([sys.executable, "run_batch.py", f"localhost:{port}", "2", str(i)], cwd=tmp_path,
                               env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)

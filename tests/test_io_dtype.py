@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import pytest
 
 from jaxbody.io.mujoco import from_mjcf
+from jaxbody._xla import default_xla_flags
 
 PENDULUM = (
     '<mujoco model="p"><worldbody><body name="b"><joint name="j" type="hinge" axis="0 1 0"/>'
@@ -31,7 +32,7 @@ URDF = (
 def _run_without_x64(code):
     env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
     env["JAX_ENABLE_X64"] = "0"
-    env.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    env.setdefault("XLA_FLAGS", default_xla_flags())
     return subprocess.run(
         [sys.executable, "-c", textwrap.dedent(code)],
         capture_output=True, text=True, timeout=120, env=env,

@@ -14,6 +14,7 @@ import sys
 import nbclient
 import nbformat
 import pytest
+from jaxbody._xla import default_xla_flags
 
 NOTEBOOKS = sorted((pathlib.Path(__file__).resolve().parents[1] / "notebooks").glob("*.ipynb"))
 # the two longest (75-100 s each on 2 cores) run in the slow job; the rest in the default suite
@@ -36,7 +37,7 @@ def kernel_env(tmp_path, monkeypatch):
     monkeypatch.setenv("JUPYTER_PATH", os.pathsep.join(p for p in jupyter_path if p))
     monkeypatch.setenv("JAXBODY_SMALL", "1")
     monkeypatch.setenv("MPLBACKEND", "Agg")
-    monkeypatch.setenv("XLA_FLAGS", os.environ.get("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false"))
+    monkeypatch.setenv("XLA_FLAGS", os.environ.get("XLA_FLAGS", default_xla_flags()))
     # ipykernel's debugger otherwise warns about frozen modules on stderr.
     monkeypatch.setenv("PYDEVD_DISABLE_FILE_VALIDATION", "1")
 

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 import jaxbody as jb
+from jaxbody._xla import default_xla_flags
 
 
 def pendulum(damping=0.0, stiffness=0.0, g=9.81):
@@ -380,7 +381,7 @@ def test_sharded_batch_equals_unsharded_on_four_devices():
         assert str(sh.q.sharding) and len(sh.q.sharding.device_set) == 4
         print("SHARDED_OK")
     """)
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4 --xla_cpu_use_fusion_emitters=false",
+    env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count=4 {default_xla_flags()}".strip(),
                JAX_PLATFORMS="cpu")
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)
     assert "SHARDED_OK" in out.stdout, out.stderr[-3000:]
