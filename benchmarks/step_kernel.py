@@ -24,15 +24,8 @@ import os
 import sys
 
 sys.path.insert(0, os.path.dirname(__file__))
-from _common import (  # noqa: E402
-    RESULTS,
-    load_average,
-    markdown_table,
-    set_default_xla_flags,
-    stamp,
-    stamp_markdown,
-    time_per_call,
-)
+from _common import RESULTS, load_average, markdown_table, stamp, stamp_markdown, time_per_call  # noqa: E402
+from _common import set_default_xla_flags  # noqa: E402
 
 STEPS = 50
 DT = 1e-3
