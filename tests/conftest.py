@@ -1,14 +1,10 @@
 """Test configuration: float64 and strict dtype promotion for every test (STYLE rule 13)."""
 
-import os
 import pathlib
-import sys
 
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "jaxbody"))
-from _xla import set_default_xla_flags  # noqa: E402 - the flags must precede JAX's start
+from jaxbody._xla import set_default_xla_flags  # importing jaxbody does not start JAX's backend
 
-sys.path.pop(0)
-set_default_xla_flags()
+set_default_xla_flags()  # before the backend starts
 
 import jax
 import pytest
