@@ -5,11 +5,13 @@ that deadlocks or runs out of memory can be killed without taking the record wit
 """
 
 import datetime
+import gc
 import importlib.metadata
 import json
 import os
 import pathlib
 import platform
+import re
 import shlex
 import signal
 import statistics
@@ -192,8 +194,22 @@ def time_per_call(
     that one repeat lasts about ``min_time / repeats``. Slow calls get fewer repeats: no
     repeat starts once ``budget`` seconds (default ``5 * min_time``) have been spent, so a
     call of tens of seconds is timed once instead of ``repeats`` times (``repeats`` in the
-    result says how many samples the median has).
+    result says how many samples the median has). Python's garbage collector is off while
+    timing, as in :mod:`timeit` (a full collection of JAX's object graph lands on a random
+    call and costs milliseconds).
     """
+    gc_was_enabled = gc.isenabled()
+    gc.collect()
+    gc.disable()
+    try:
+        return _time_per_call(fn, min_time=min_time, repeats=repeats, budget=budget, warmup=warmup,
+                              max_number=max_number)
+    finally:
+        if gc_was_enabled:
+            gc.enable()
+
+
+def _time_per_call(fn, *, min_time, repeats, budget, warmup, max_number) -> dict:
     budget = 5.0 * min_time if budget is None else budget
     if warmup:
         fn()
@@ -224,6 +240,40 @@ def time_per_call(
 
 
 # ----------------------------------------------------------------------------- isolation
+_NOT_LAUNCHED = {"parameter", "get-tuple-element", "tuple", "constant", "bitcast"}
+
+
+def loop_body_ops(hlo_text: str) -> dict:
+    """What one iteration of a compiled program's loops runs: for each ``while`` of the optimised
+    HLO text (``compiled.as_text()``), the top-level operations of its body other than
+    parameters, tuples, constants and bitcasts (on a GPU each is about one kernel launch or
+    copy), by opcode. Returns ``{"max": n, "bodies": [{"body": name, "ops": n, "by_opcode":
+    {...}}, ...]}``, largest body first."""
+    comps, current, bodies = {}, None, []
+    for line in hlo_text.splitlines():
+        if current is None:
+            if line and not line[0].isspace() and line.rstrip().endswith("{"):
+                name = line.split()[1] if line.startswith("ENTRY") else line.split()[0]
+                current = comps.setdefault(name.lstrip("%"), {})
+            continue
+        if line.strip() == "}":
+            current = None
+            continue
+        m = re.search(r"=\s.*?\s([a-z][a-z0-9\-]*)\(", line)
+        if m:
+            current[m.group(1)] = current.get(m.group(1), 0) + 1
+            if m.group(1) == "while":
+                b = re.search(r"body=%?([\w.\-]+)", line)
+                if b:
+                    bodies.append(b.group(1))
+    out = []
+    for name in dict.fromkeys(bodies):
+        ops = {k: v for k, v in comps.get(name, {}).items() if k not in _NOT_LAUNCHED}
+        out.append({"body": name, "ops": sum(ops.values()), "by_opcode": ops})
+    out.sort(key=lambda d: -d["ops"])
+    return {"max": out[0]["ops"] if out else 0, "bodies": out[:4]}
+
+
 def run_worker(cmd, *, timeout: float, result_file: pathlib.Path, env=None) -> dict:
     """Run ``cmd`` in its own process group; return the JSON it left in ``result_file``.
 

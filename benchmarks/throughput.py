@@ -243,12 +243,13 @@ def worker_jaxbody(cfg, rec):
             fn = jax.vmap(rollout, in_axes=axes)
             row["path"] = "jax.vmap"
         try:
-            jitted, _, out, t = _compile(jax, fn, (model, q, v, tb))
+            jitted, compiled, out, t = _compile(jax, fn, (model, q, v, tb))
         except Exception as e:  # noqa: BLE001 - recorded, the next batch still runs
             row["error"] = f"{e.__class__.__name__}: {e}"[:800]
             rec.save()
             continue
         row["compile"] = t
+        row["loop_body_ops"] = _loop_body_ops(compiled)
         steps = int(np.max(np.asarray(out[2])))
         row["steps"] = steps
         row["finite"] = bool(np.isfinite(np.asarray(out[0])).all() and np.isfinite(np.asarray(out[1])).all())
@@ -321,8 +322,9 @@ def worker_mjx(cfg, rec):
 
     rec.data.update(batch=batch, steps=nstep, running="compile")
     rec.save()
-    jitted, _, out, t = _compile(jax, jax.vmap(rollout), (dxs,))
+    jitted, compiled, out, t = _compile(jax, jax.vmap(rollout), (dxs,))
     rec.data["compile"] = t
+    rec.data["loop_body_ops"] = _loop_body_ops(compiled)
     rec.data["finite"] = bool(np.isfinite(np.asarray(out.qpos)).all())
     rec.data["running"] = "run"
     rec.save()
@@ -333,6 +335,14 @@ def worker_mjx(cfg, rec):
     rec.data.pop("running")
     rec.save()
     del mujoco
+
+
+def _loop_body_ops(compiled):
+    """Operations per iteration of the compiled program's loops (:func:`_common.loop_body_ops`)."""
+    try:
+        return _common.loop_body_ops(compiled.as_text())
+    except Exception as e:  # noqa: BLE001 - a diagnostic, never a reason to lose the timing
+        return {"error": f"{e.__class__.__name__}: {e}"[:200]}
 
 
 # ============================================================================ analysis
