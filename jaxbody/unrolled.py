@@ -43,6 +43,7 @@ same numbers (tests compare them with each other and with MuJoCo).
 import functools
 from collections.abc import Sequence
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -493,7 +494,10 @@ def _ltdl_solve(M: dict, dof_parent: Sequence[int], b: list) -> list:
 
 
 def _stack(values: list, dtype) -> Array:
-    return jnp.stack([jnp.asarray(v, dtype) for v in values])
+    # The scalars are materialised before they are stacked: fused into the concatenation, XLA
+    # evaluates the work they share once per element of the stack (on a GPU, three such
+    # fusions took half of a batched RK4 step, benchmarks/results/step_profile_gpu.md).
+    return jnp.stack(jax.lax.optimization_barrier([jnp.asarray(v, dtype) for v in values]))
 
 
 def _scalar_inputs(model: Model, q, v, gravity, external):
