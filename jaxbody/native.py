@@ -518,6 +518,7 @@ extern "C" void jaxbody_range(const Inputs* in, int64_t b0, int64_t b1) {
 
 _HANDLER = r"""
 #include <atomic>
+#include <chrono>
 #include <condition_variable>
 #include <mutex>
 #include <thread>
@@ -529,26 +530,47 @@ constexpr ffi::DataType DT = @DT@;
 
 // A persistent pool: a batch is cut into as many slices as threads; the calling thread runs
 // the first, the workers the others (starting threads on every call would cost as much as a
-// few hundred states).
+// few hundred states). Between calls the workers spin for up to SPIN_NS before they sleep on a
+// condition variable, and so does the caller waiting for them: the next call of a simulation
+// comes a few tens of microseconds after the last (the integrator's own work on the batch),
+// and waking a sleeping thread costs as much on a virtual machine. Every worker acknowledges
+// every call, so a call's fields stay valid until all of them have read them.
 class Pool {
  public:
   void run(Range range, const Inputs* in, int64_t batch, int64_t threads) {
     std::lock_guard<std::mutex> call(call_);  // one batch at a time (XLA may call from several devices)
     grow(threads - 1);
     const int64_t chunk = (batch + threads - 1) / threads;
+    range_ = range, in_ = in, batch_ = batch, chunk_ = chunk, slices_ = threads;
+    pending_.store(int64_t(workers_.size()), std::memory_order_relaxed);
     {
       std::lock_guard<std::mutex> lock(m_);
-      range_ = range, in_ = in, batch_ = batch, chunk_ = chunk, slices_ = threads;
-      pending_ = threads - 1;
-      ++generation_;
+      generation_.fetch_add(1, std::memory_order_release);  // publishes the fields above
     }
-    cv_.notify_all();
+    cv_.notify_all();  // no system call when every worker is spinning
     range(in, 0, chunk < batch ? chunk : batch);
-    std::unique_lock<std::mutex> lock(m_);
-    done_.wait(lock, [&] { return pending_ == 0; });
+    if (!spin([&] { return pending_.load(std::memory_order_acquire) == 0; })) {
+      std::unique_lock<std::mutex> lock(m_);
+      done_.wait(lock, [&] { return pending_.load(std::memory_order_acquire) == 0; });
+    }
   }
 
  private:
+  static constexpr int64_t SPIN_NS = @SPIN_NS@;
+  template <class Ready>
+  static bool spin(Ready ready) {
+    if (ready()) return true;
+    const auto until = std::chrono::steady_clock::now() + std::chrono::nanoseconds(SPIN_NS);
+    for (int i = 1;; ++i) {
+      for (int k = 0; k < 16; ++k) {
+        if (ready()) return true;
+#if defined(__x86_64__) || defined(__i386__)
+        __builtin_ia32_pause();
+#endif
+      }
+      if (std::chrono::steady_clock::now() > until) return ready();
+    }
+  }
   void grow(int64_t n) {
     while (int64_t(workers_.size()) < n) {
       const int64_t slot = int64_t(workers_.size()) + 1;
@@ -559,17 +581,20 @@ class Pool {
   void work(int64_t slot) {
     uint64_t seen = 0;
     for (;;) {
-      std::unique_lock<std::mutex> lock(m_);
-      cv_.wait(lock, [&] { return generation_ != seen; });
-      seen = generation_;
-      if (slot >= slices_) continue;
-      const int64_t b0 = slot * chunk_, b1 = b0 + chunk_ < batch_ ? b0 + chunk_ : batch_;
-      Range range = range_;
-      const Inputs* in = in_;
-      lock.unlock();
-      if (b0 < b1) range(in, b0, b1);
-      lock.lock();
-      if (--pending_ == 0) done_.notify_one();
+      auto fresh = [&] { return generation_.load(std::memory_order_acquire) != seen; };
+      if (!spin(fresh)) {
+        std::unique_lock<std::mutex> lock(m_);
+        cv_.wait(lock, fresh);
+      }
+      seen = generation_.load(std::memory_order_acquire);
+      if (slot < slices_) {
+        const int64_t b0 = slot * chunk_, b1 = b0 + chunk_ < batch_ ? b0 + chunk_ : batch_;
+        if (b0 < b1) range_(in_, b0, b1);
+      }
+      if (pending_.fetch_sub(1, std::memory_order_acq_rel) == 1) {
+        std::lock_guard<std::mutex> lock(m_);  // the caller checks pending_ under m_ before it sleeps
+        done_.notify_one();
+      }
     }
   }
   std::mutex call_, m_;
@@ -577,8 +602,9 @@ class Pool {
   std::vector<std::thread> workers_;
   Range range_ = nullptr;
   const Inputs* in_ = nullptr;
-  int64_t batch_ = 0, chunk_ = 0, slices_ = 0, pending_ = 0;
-  uint64_t generation_ = 0;
+  int64_t batch_ = 0, chunk_ = 0, slices_ = 0;
+  std::atomic<int64_t> pending_{0};
+  std::atomic<uint64_t> generation_{0};
 };
 
 static Pool* pool() {
@@ -830,6 +856,11 @@ def applies(model: Model) -> bool:
     return 0 < model.nv <= MAX_DOFS and available()
 
 
+#: Nanoseconds the pool's threads spin waiting for the next call (or for each other) before
+#: they sleep; ``$JAXBODY_NATIVE_SPIN_NS`` overrides it (0: sleep at once).
+SPIN_NS = 100_000
+
+
 def threads() -> int:
     """Threads one call splits a batch over: ``$JAXBODY_NATIVE_THREADS``, else the CPU count."""
     return int(os.environ.get("JAXBODY_NATIVE_THREADS", os.cpu_count() or 1))
@@ -881,7 +912,8 @@ def _build(source: str, stem: str) -> Path:
 def _handler(dtype) -> str:
     """The FFI target name of the (tree-independent) handler for ``dtype``; built and registered once."""
     scalar, ffi_type = _SCALAR[np.dtype(dtype)]
-    source = _HANDLER.replace("@COMMON@", _COMMON.replace("@T@", scalar)).replace("@DT@", ffi_type)
+    source = (_HANDLER.replace("@COMMON@", _COMMON.replace("@T@", scalar)).replace("@DT@", ffi_type)
+              .replace("@SPIN_NS@", str(int(os.environ.get("JAXBODY_NATIVE_SPIN_NS", SPIN_NS)))))
     path = _build(source, f"handler_{scalar}")
     lib = ctypes.cdll.LoadLibrary(str(path))
     name = f"jaxbody_native_{path.stem}"

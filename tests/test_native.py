@@ -290,6 +290,44 @@ print(' '.join(repr(float(x)) for x in np.ravel(a)))
     assert np.max(np.abs(a32 - a64)) <= 1e-4 * max(1.0, np.abs(a64).max())
 
 
+@pytest.mark.parametrize("spin_ns", ["0", "100000"])
+def test_thread_pool_back_to_back_calls_with_more_threads_than_cores(models_dir, spin_ns):
+    """The pool's threads spin between calls (``SPIN_NS``) or sleep at once (0); with three
+    threads on any machine, batches that use one, two or three of them, Python-driven calls
+    and 60 calls back to back inside a jitted loop all equal the vectorised kernel."""
+    import subprocess
+    import sys
+
+    code = f"""
+import os
+os.environ['JAXBODY_NATIVE_THREADS'] = '3'
+os.environ['JAXBODY_NATIVE_SPIN_NS'] = {spin_ns!r}
+import warnings; warnings.simplefilter('ignore')
+import jax; jax.config.update('jax_enable_x64', True)
+import jax.numpy as jnp, numpy as np
+import jaxbody as jb
+from jaxbody import kernels
+m = jb.from_mjcf({str(models_dir / 'panda.xml')!r})
+rng = np.random.default_rng(5)
+q = jnp.asarray(np.asarray(m.qpos0) + 0.4 * rng.standard_normal((1000, m.nq)))
+v = jnp.asarray(rng.standard_normal((1000, m.nv)))
+def fd(kernel):
+    return jax.vmap(lambda q, v: kernels.acceleration(m, q, v, gravity=m.gravity, kernel=kernel))
+native, ref = jax.jit(fd('native')), jax.jit(fd('vectorised'))
+for rep in range(3):
+    for b in (100, 130, 257, 1000):  # one, two, three (partial) and three slices
+        a, r = native(q[:b], v[:b]), ref(q[:b], v[:b])
+        assert float(jnp.max(jnp.abs(a - r))) <= 1e-11 * float(jnp.max(jnp.abs(r))), (rep, b)
+def loop(f):
+    return jax.jit(lambda v: jax.lax.fori_loop(0, 60, lambda i, v: v + 1e-4 * f(q, v), v))
+a, r = loop(fd('native'))(v), loop(fd('vectorised'))(v)
+assert float(jnp.max(jnp.abs(a - r))) <= 1e-10 * float(jnp.max(jnp.abs(r)))
+print('ok')
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]
+
+
 @pytest.mark.slow  # about 50 s (Panda's generated RK4 step); test_native_step.py covers simulate on the native kernel
 def test_simulate_with_the_native_kernel_equals_the_vectorised_one(models_dir):
     from jaxbody import simulation
