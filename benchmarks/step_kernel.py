@@ -6,7 +6,9 @@ For each model and batch this times, per state and step:
   native call per step and nothing else: the generated program, the FFI call, the thread pool);
 * ``simulate``: ``jb.simulate(jb.scene(model, kernel="auto"), ..., solver="rk4")`` vmapped
   over the same batch, the model a traced argument as in ``throughput.py`` (the same step plus
-  diffrax's loop, its bookkeeping on the batch and the saved state),
+  diffrax's loop, its bookkeeping on the batch and the saved state);
+* ``energy``: the scene's total energy at one state, vmapped over the batch (what
+  ``jb.simulate`` evaluates at each saved time; per state, not per step),
 
 in float64 and float32 in one process (x64 on; the float32 model's state and step are float32,
 diffrax's time is float64), and the float32/float64 ratio of each: the kernel's ratio is what
@@ -55,6 +57,9 @@ def main(argv=None):
     import jaxbody as jb
     from jaxbody import native
 
+    rec["native_threads"] = native.threads()
+    rec["native_spin_ns"] = int(os.environ.get("JAXBODY_NATIVE_SPIN_NS", native.SPIN_NS))
+
     for name in args.models.split(","):
         for batch in (int(b) for b in args.batches.split(",")):
             per = {}
@@ -87,17 +92,21 @@ def main(argv=None):
                                       saveat=diffrax.SaveAt(t1=True), max_steps=STEPS + 8)
                     return sol.q[-1], sol.v[-1]
 
+                def energy(model, q, v):
+                    return jb.scene(model, kernel="auto").total_energy(q, v)
+
                 fns = {
                     "kernel": (jax.jit(jax.vmap(kernel_loop)), (q, v)),
                     "simulate": (jax.jit(jax.vmap(rollout, in_axes=(None, 0, 0))), (model, q, v)),
+                    "energy": (jax.jit(jax.vmap(energy, in_axes=(None, 0, 0))), (model, q, v)),
                 }
                 for piece, (f, a) in fns.items():
                     jax.block_until_ready(f(*a))
                     t = time_per_call(lambda f=f, a=a: jax.block_until_ready(f(*a)), min_time=args.min_time)["median_s"]
-                    ns = 1e9 * t / (batch * STEPS)
+                    ns = 1e9 * t / (batch * (1 if piece == "energy" else STEPS))
                     per[(piece, dtype.__name__)] = ns
                     print(f"{name:9s} B={batch:6d} {dtype.__name__:8s} {piece:9s} {ns:8.1f} ns/state-step", flush=True)
-            for piece in ("kernel", "simulate"):
+            for piece in ("kernel", "simulate", "energy"):
                 rec["rows"].append({"model": name, "batch": batch, "piece": piece, "float64_ns": per[(piece, "float64")],
                                     "float32_ns": per[(piece, "float32")],
                                     "ratio": per[(piece, "float64")] / per[(piece, "float32")]})
@@ -115,7 +124,11 @@ def main(argv=None):
         "",
         f"Nanoseconds per state and step, {STEPS} steps per call, dt = {DT}. `kernel`: a jitted "
         "`lax.fori_loop` of `jaxbody.native.rk4_step` over the batch. `simulate`: `jb.simulate` "
-        "(RK4, the model a traced argument) vmapped over the batch. Ratio: float64 time / float32 time.",
+        "(RK4, the model a traced argument) vmapped over the batch. `energy`: one evaluation of the "
+        "scene's total energy per state (nanoseconds per state, not per step), which `jb.simulate` "
+        "evaluates at every saved time (here once, at t1). Ratio: float64 time / float32 time. "
+        f"Native thread pool: {rec['native_threads']} threads, spinning {rec['native_spin_ns']} ns "
+        "between calls (`$JAXBODY_NATIVE_THREADS`, `$JAXBODY_NATIVE_SPIN_NS`).",
         "",
         markdown_table(["model", "batch", "piece", "float64 ns", "float32 ns", "float32 speed-up"], rows),
         "",

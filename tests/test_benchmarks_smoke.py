@@ -211,7 +211,7 @@ def test_step_kernel_smoke(tmp_path):
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env, cwd=REPO)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
     rec = json.loads((tmp_path / "rec.json").read_text())
-    assert [r["piece"] for r in rec["rows"]] == ["kernel", "simulate"]
+    assert [r["piece"] for r in rec["rows"]] == ["kernel", "simulate", "energy"]
     assert all(r["float64_ns"] > 0 and r["float32_ns"] > 0 and r["ratio"] > 0 for r in rec["rows"])
     assert "| panda | 16 | kernel |" in (tmp_path / "rec.md").read_text()
 
@@ -220,7 +220,7 @@ def test_throughput_rerender_of_the_gpu_records(tmp_path):
     # The GPU records were measured on a lent machine; --rerender re-analyses them here. The
     # GPU targets come out of their numbers, and targets a run did not measure say so.
     env = dict(os.environ, PYTHONPATH=str(REPO), MPLBACKEND="Agg")
-    for name in ("throughput_gpu", "throughput_gpu_vs_mjx"):
+    for name in ("throughput_gpu", "throughput_gpu_vs_mjx", "throughput_gpu_barrier_pair"):
         cmd = [sys.executable, str(BENCH / "throughput.py"), "--rerender", str(BENCH / "results" / f"{name}.json"),
                "--out", str(tmp_path), "--name", name]
         p = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env, cwd=REPO)
@@ -239,3 +239,62 @@ def test_throughput_rerender_of_the_gpu_records(tmp_path):
         assert gpu[1]["verdict"] == ("MET" if min(ratios) >= 10 else "NOT MET")
         md = (tmp_path / f"{name}.md").read_text()
         assert "kernel" in md and "Where it ran: jb32 on NVIDIA H200" in md
+
+
+def test_loop_body_ops_counts_the_top_level_operations_of_each_while_body():
+    sys.path.insert(0, str(BENCH))
+    import _common
+
+    hlo = """HloModule m
+
+%fused_computation (p: f32[4]) -> f32[4] {
+  %p = f32[4]{0} parameter(0)
+  ROOT %n = f32[4]{0} negate(%p)
+}
+
+%body (arg: (s32[], f32[4])) -> (s32[], f32[4]) {
+  %arg = (s32[], f32[4]{0}) parameter(0)
+  %i = s32[] get-tuple-element(%arg), index=0
+  %x = f32[4]{0} get-tuple-element(%arg), index=1
+  %one = s32[] constant(1)
+  %j = s32[] add(%i, %one)
+  %y = f32[4]{0} fusion(%x), kind=kLoop, calls=%fused_computation
+  %z = f32[4]{0} custom-call(%y), custom_call_target="k"
+  %b = f32[2,2]{1,0} bitcast(%z)
+  ROOT %t = (s32[], f32[4]{0}) tuple(%j, %z)
+}
+
+%cond (arg: (s32[], f32[4])) -> pred[] {
+  %arg = (s32[], f32[4]{0}) parameter(0)
+  %i = s32[] get-tuple-element(%arg), index=0
+  %n = s32[] constant(10)
+  ROOT %lt = pred[] compare(%i, %n), direction=LT
+}
+
+ENTRY %main (x: f32[4]) -> (s32[], f32[4]) {
+  %x = f32[4]{0} parameter(0)
+  %zero = s32[] constant(0)
+  %init = (s32[], f32[4]{0}) tuple(%zero, %x)
+  ROOT %w = (s32[], f32[4]{0}) while(%init), condition=%cond, body=%body
+}
+"""
+    out = _common.loop_body_ops(hlo)
+    assert out["max"] == 3
+    assert out["bodies"] == [{"body": "body", "ops": 3, "by_opcode": {"add": 1, "fusion": 1, "custom-call": 1}}]
+    assert _common.loop_body_ops("HloModule m\n") == {"max": 0, "bodies": []}
+
+
+@pytest.mark.slow
+def test_step_profile_smoke(tmp_path):
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env.setdefault("XLA_FLAGS", default_xla_flags())
+    cmd = [sys.executable, str(BENCH / "step_profile.py"), "--cases", "float64:4,float32:4", "--steps", "3",
+           "--kernel", "vectorised", "--repeats", "1", "--out", str(tmp_path), "--name", "rec"]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env, cwd=REPO)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    rec = json.loads((tmp_path / "rec.json").read_text())
+    assert [(r["dtype"], r["batch"]) for r in rec["rows"]] == [("float64", 4), ("float32", 4)]
+    for r in rec["rows"]:
+        assert r["steps_per_s"] > 0 and r["loop_body_ops"]["max"] > 0
+        assert r["cost_analysis"]["flops"] > 0 and r["trace"]["call_s"] > 0
+    assert "| float32 | 4 |" in (tmp_path / "rec.md").read_text()
