@@ -561,7 +561,7 @@ class Pool {
   static bool spin(Ready ready) {
     if (ready()) return true;
     const auto until = std::chrono::steady_clock::now() + std::chrono::nanoseconds(SPIN_NS);
-    for (int i = 1;; ++i) {
+    for (;;) {
       for (int k = 0; k < 16; ++k) {
         if (ready()) return true;
 #if defined(__x86_64__) || defined(__i386__)
@@ -574,12 +574,13 @@ class Pool {
   void grow(int64_t n) {
     while (int64_t(workers_.size()) < n) {
       const int64_t slot = int64_t(workers_.size()) + 1;
-      workers_.emplace_back([this, slot] { work(slot); });
+      // a new worker starts at the calls made so far: the next one is its first
+      const uint64_t seen = generation_.load(std::memory_order_relaxed);
+      workers_.emplace_back([this, slot, seen] { work(slot, seen); });
       workers_.back().detach();
     }
   }
-  void work(int64_t slot) {
-    uint64_t seen = 0;
+  void work(int64_t slot, uint64_t seen) {
     for (;;) {
       auto fresh = [&] { return generation_.load(std::memory_order_acquire) != seen; };
       if (!spin(fresh)) {
