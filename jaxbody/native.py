@@ -530,10 +530,11 @@ constexpr ffi::DataType DT = @DT@;
 
 // A persistent pool: a batch is cut into as many slices as threads; the calling thread runs
 // the first, the workers the others (starting threads on every call would cost as much as a
-// few hundred states). Between calls the workers spin for up to SPIN_NS before they sleep on a
-// condition variable, and so does the caller waiting for them: the next call of a simulation
-// comes a few tens of microseconds after the last (the integrator's own work on the batch),
-// and waking a sleeping thread costs as much on a virtual machine. Every worker acknowledges
+// few hundred states). Between calls the workers spin (yielding the core to any other
+// runnable thread) for up to SPIN_NS before they sleep on a condition variable, and so does the
+// caller waiting for them: the next call of a simulation comes a few tens of microseconds after
+// the last (the integrator's own work on the batch), and waking a sleeping thread costs as much
+// on a virtual machine. Every worker acknowledges
 // every call, so a call's fields stay valid until all of them have read them.
 class Pool {
  public:
@@ -569,6 +570,7 @@ class Pool {
 #endif
       }
       if (std::chrono::steady_clock::now() > until) return ready();
+      std::this_thread::yield();  // a core shared with other work gets it back at once
     }
   }
   void grow(int64_t n) {
