@@ -1,14 +1,15 @@
 """Where a batched RK4 rollout's time goes on an accelerator (issue 7): XLA's cost analysis and
 one profiled call.
 
-For each dtype and batch this compiles the rollout ``benchmarks/throughput.py`` times (panda,
+For each dtype and batch this compiles the rollout ``benchmarks/throughput.py`` times (Panda,
 ``jb.simulate(jb.scene(model, kernel=KERNEL), ..., solver="rk4", dt0=1e-3,
-saveat=SaveAt(t1=True))`` under ``jax.jit(jax.vmap(...))``, the model closed over as there)
+saveat=SaveAt(t1=True))`` under ``jax.jit(jax.vmap(...))``, the model closed over, where
+``throughput.py`` passes it as an argument)
 and records, per state and step:
 
 * the time of a call (median of a few) and system-steps/s;
-* XLA's cost analysis of the compiled program: floating-point operations and bytes accessed,
-  and the bandwidth and FLOP rate they imply at the measured speed;
+* XLA's cost analysis of the compiled program: floating-point operations and bytes accessed
+  (a ``while`` body counted once);
 * the operations of one iteration of the step loop (``_common.loop_body_ops``);
 * one call under ``jax.profiler.trace``: the device's kernels grouped by name (launches, total
   time), the share of the call's wall time the device was busy, the largest kernels.
@@ -22,7 +23,6 @@ Writes ``OUT/NAME.{md,json}``. On a GPU::
 
 import argparse
 import json
-import os
 import pathlib
 import statistics
 import sys
@@ -37,7 +37,7 @@ from _common import set_default_xla_flags  # noqa: E402
 DT = 1e-3
 
 
-def _device_kernels(trace_dir: pathlib.Path, jax) -> dict:
+def _device_kernels(trace_dir: pathlib.Path) -> dict:
     """Kernels of the device planes of the trace in ``trace_dir``, grouped by name."""
     from jax.profiler import ProfileData
 
@@ -118,7 +118,7 @@ def run_case(jax, jb, model_file, dtype_name, batch, steps, kernel, repeats):
             t0 = time.perf_counter()
             jax.block_until_ready(jitted(q, v))
             traced_s = time.perf_counter() - t0
-        row["trace"] = {"call_s": traced_s, **_device_kernels(pathlib.Path(tmp), jax)}
+        row["trace"] = {"call_s": traced_s, **_device_kernels(pathlib.Path(tmp))}
     tr = row["trace"]
     if tr.get("launches"):
         tr["launches_per_step"] = tr["launches"] / steps
