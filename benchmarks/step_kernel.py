@@ -105,7 +105,8 @@ def main(argv=None):
                     t = time_per_call(lambda f=f, a=a: jax.block_until_ready(f(*a)), min_time=args.min_time)["median_s"]
                     ns = 1e9 * t / (batch * (1 if piece == "energy" else STEPS))
                     per[(piece, dtype.__name__)] = ns
-                    print(f"{name:9s} B={batch:6d} {dtype.__name__:8s} {piece:9s} {ns:8.1f} ns/state-step", flush=True)
+                    unit = "ns/state" if piece == "energy" else "ns/state-step"
+                    print(f"{name:9s} B={batch:6d} {dtype.__name__:8s} {piece:9s} {ns:8.1f} {unit}", flush=True)
             for piece in ("kernel", "simulate", "energy"):
                 rec["rows"].append({"model": name, "batch": batch, "piece": piece, "float64_ns": per[(piece, "float64")],
                                     "float32_ns": per[(piece, "float32")],

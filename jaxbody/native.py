@@ -534,8 +534,8 @@ constexpr ffi::DataType DT = @DT@;
 // runnable thread) for up to SPIN_NS before they sleep on a condition variable, and so does the
 // caller waiting for them: the next call of a simulation comes a few tens of microseconds after
 // the last (the integrator's own work on the batch), and waking a sleeping thread costs as much
-// on a virtual machine. Every worker acknowledges
-// every call, so a call's fields stay valid until all of them have read them.
+// on a virtual machine. Every worker acknowledges every call, so a call's fields stay valid
+// until all of them have read them.
 class Pool {
  public:
   void run(Range range, const Inputs* in, int64_t batch, int64_t threads) {
