@@ -65,7 +65,7 @@ from . import unrolled
 from ._types import Array, ArrayLike, Float
 from .model import Model
 
-__all__ = ["MAX_DOFS", "applies", "available", "forward_dynamics", "parameter_vector", "rk4_step", "threads"]
+__all__ = ["MAX_DOFS", "applies", "available", "energies", "forward_dynamics", "parameter_vector", "rk4_step", "threads"]
 
 #: Largest number of DoFs ``kernel="auto"`` gives the native kernel. The generated code grows
 #: with the mass-matrix entries on each DoF's ancestor chain and their factorisation (for a
@@ -202,10 +202,10 @@ class _SymbolicModel:
 
     FIELDS = ("body_pos", "body_quat", "body_mass", "body_com", "body_inertia", "joint_pos", "joint_axis", "dof_armature", "qpos0")
 
-    def __init__(self, tree, joints, em: _Emitter):
+    def __init__(self, tree, joints, em: _Emitter, slot: int = 3):
         n = sum(int(np.prod(shape)) for shape in _field_shapes(tree, joints))
         p = np.empty(n, dtype=object)
-        p[:] = _inputs(em, "p", n, _SLOTS["p"])
+        p[:] = _inputs(em, "p", n, slot)
         _unflatten_parameters(self, tree, joints, p, np.reshape)
 
 
@@ -227,9 +227,12 @@ def _unflatten_parameters(target, tree, joints, flat, reshape) -> None:
 # or the seven cotangents.
 _SLOTS = {"q": 0, "v": 1, "f": 2, "p": 3, "g": 4, "ext": 5, "dq": 6, "dv": 7, "df": 8, "ct": 6}
 _STEP_SLOTS = {"q": 0, "v": 1, "f": 2, "p": 3, "g": 4, "ext": 5, "h": 6, "k": 7, "r": 8, "d": 9, "dq": 10, "dv": 11, "df": 12, "ct": 10}
+# the energy program: the state, the model, gravity and the joint springs
+_ENERGY_SLOTS = {"q": 0, "v": 1, "p": 2, "g": 3, "k": 4, "r": 5}
 
-#: Programs: forward dynamics and one RK4 step, each with its forward- and reverse-mode derivative.
-MODES = ("fd", "jvp", "vjp", "rk4", "rk4_jvp", "rk4_vjp")
+#: Programs: forward dynamics and one RK4 step, each with its forward- and reverse-mode
+#: derivative, and the energies of a state (no derivative programs: their tangents are rare).
+MODES = ("fd", "jvp", "vjp", "rk4", "rk4_jvp", "rk4_vjp", "energy")
 
 
 def _widths(joints, mode: str) -> tuple:
@@ -242,6 +245,7 @@ def _widths(joints, mode: str) -> tuple:
         "rk4": (nq, nv, nq, nv, nq, nv, 3),
         "rk4_jvp": (nq, nv, nq, nv, nq, nv, 3),
         "rk4_vjp": (nq, nv, nv),
+        "energy": (3,),
     }[mode]
 
 
@@ -312,23 +316,40 @@ def _quat_spring_displacement(q: list, r: list) -> list:
     return [d[1] * scale, d[2] * scale, d[3] * scale]
 
 
+def _spring_displacements(joints, q: list, reference: list) -> list:
+    """``(joint, DoF, q ⊖ q_ref)`` of every DoF on scalars: a coordinate's difference, or for the
+    rotation of a ball or free joint a component of the rotation vector of ``q_ref⁻¹ ⊗ q``."""
+    out = []
+    for kind, js, qa, da in joints.kind_groups():
+        for j, qi, di in zip(js.tolist(), qa.tolist(), da.tolist()):
+            if kind.quaternion is None:
+                out.append((j, di, q[qi] - reference[qi]))
+                continue
+            n = kind.translation
+            for k in range(n):
+                out.append((j, di + k, q[qi + k] - reference[qi + k]))
+            i = qi + kind.quaternion
+            disp = _quat_spring_displacement(q[i : i + 4], reference[i : i + 4])
+            for k in range(3):
+                out.append((j, di + n + k, disp[k]))
+    return out
+
+
+def _spring_potential(joints, q: list, stiffness: list, reference: list):
+    """``½ Σ_j k_j |q_j ⊖ q_ref,j|²`` on scalars, as the potential of :class:`jaxbody.JointSprings`."""
+    total = 0.0
+    for j, _, disp in _spring_displacements(joints, q, reference):
+        total = total + stiffness[j] * (disp * disp)
+    return 0.5 * total
+
+
 def _joint_force(joints, q: list, v: list, force: list, stiffness: list, reference: list, damping: list) -> tuple:
     """``force`` plus joint springs ``−k (q ⊖ q_ref)`` (quaternion joints: rotation-vector
     difference) and dampers ``−c v`` on lists of scalars, and the dampers' power ``(−c v)·v``;
     as :class:`jaxbody.JointSprings` and :class:`jaxbody.JointDampers`."""
     total = list(force)
-    for kind, js, qa, da in joints.kind_groups():
-        for j, qi, di in zip(js.tolist(), qa.tolist(), da.tolist()):
-            if kind.quaternion is None:
-                total[di] = total[di] - stiffness[j] * (q[qi] - reference[qi])
-                continue
-            n = kind.translation
-            for k in range(n):
-                total[di + k] = total[di + k] - stiffness[j] * (q[qi + k] - reference[qi + k])
-            i = qi + kind.quaternion
-            disp = _quat_spring_displacement(q[i : i + 4], reference[i : i + 4])
-            for k in range(3):
-                total[di + n + k] = total[di + n + k] - stiffness[j] * disp[k]
+    for j, d, disp in _spring_displacements(joints, q, reference):
+        total[d] = total[d] - stiffness[j] * disp
     power = 0.0
     for i in range(len(v)):
         damper = -(damping[i] * v[i])
@@ -783,9 +804,11 @@ def _generate(tree, joints, with_external: bool, dtype, mode: str = "fd") -> str
     input) with the force held over the step (:func:`_rk4_scalars`: six results).
     """
     step = mode.startswith("rk4")
+    if mode == "energy":
+        return _generate_energy(tree, joints, dtype)
     slots = _STEP_SLOTS if step else _SLOTS
     em = _Emitter()
-    model = _SymbolicModel(tree, joints, em)
+    model = _SymbolicModel(tree, joints, em, slots["p"])
     q = _inputs(em, "q", joints.nq, slots["q"])
     v = _inputs(em, "v", joints.nv, slots["v"])
     f = _inputs(em, "f", joints.nv, slots["f"])
@@ -833,6 +856,27 @@ def _generate(tree, joints, with_external: bool, dtype, mode: str = "fd") -> str
         results = [[adj.get(xi.name, 0.0) for xi in x] for x in (q, v, f)]
     else:
         raise ValueError(f"unknown mode {mode!r}")
+
+    return _source(em, results, dtype)
+
+
+def _generate_energy(tree, joints, dtype) -> str:
+    """C++ source of the energies of a state: ``(kinetic, gravity potential, spring potential)``
+    (:func:`jaxbody.unrolled._energies`, :func:`_spring_potential`)."""
+    slots = _ENERGY_SLOTS
+    em = _Emitter()
+    model = _SymbolicModel(tree, joints, em, slots["p"])
+    q = _inputs(em, "q", joints.nq, slots["q"])
+    v = _inputs(em, "v", joints.nv, slots["v"])
+    g = tuple(_inputs(em, "g", 3, slots["g"]))
+    stiffness = _inputs(em, "k", joints.n_joint, slots["k"])
+    reference = _inputs(em, "r", joints.nq, slots["r"])
+    kinetic, potential = unrolled._energies(model, q, v, g)
+    return _source(em, [[kinetic, potential, _spring_potential(joints, q, stiffness, reference)]], dtype)
+
+
+def _source(em: _Emitter, results: list, dtype) -> str:
+    """The kernel's C++ source: the emitted lines, then every result stored."""
 
     def value(x):
         return x.name if isinstance(x, _Sym) else f"U{{}} + T({float(x)!r})"
@@ -954,7 +998,7 @@ class _Kernel:
         self.source = _generate(tree, joints, with_external, self.dtype, mode)
         self._addresses = {}
         self.address(False)  # built now: a build error shows where the kernel is first used
-        if mode in ("fd", "rk4"):
+        if mode in ("fd", "rk4", "energy"):
             self.batched = self._batched_call()
 
     def address(self, wide: bool) -> int:
@@ -1314,3 +1358,74 @@ def rk4_step(
     kernel = _kernel(model.tree, model.joints, with_external, np.dtype(dtype), "rk4")
     fd_kernel = _kernel(model.tree, model.joints, with_external, np.dtype(dtype))
     return _rk4_step(kernel, fd_kernel, model, q, v, force, gravity, external, h, stiffness, reference, damping)
+
+
+# ----------------------------------------------------------------------------- energies
+def _energy_rows(model, q, v, gravity, stiffness, reference):
+    row = lambda x: jnp.reshape(x, (1, -1))  # noqa: E731
+    return (row(q), row(v), row(parameter_vector(model)), row(gravity), row(stiffness), row(reference))
+
+
+def _energies_composed(model, q, v, gravity, stiffness, reference):
+    """The energies written in JAX on the unrolled kernel's scalars (their derivatives)."""
+    sc = unrolled._scalars
+    kinetic, potential = unrolled._energies(model, sc(q), sc(v), tuple(sc(gravity)))
+    spring = _spring_potential(model.joints, sc(q), sc(stiffness), sc(reference))
+    dtype = q.dtype
+    return tuple(jnp.asarray(e, dtype) for e in (kinetic, potential, spring))
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _energies(kernel, model, q, v, gravity, stiffness, reference):
+    out = kernel.batched(*_energy_rows(model, q, v, gravity, stiffness, reference))[0][0]
+    return out[0], out[1], out[2]
+
+
+def _energies_jvp(kernel, primals, tangents):
+    # value: the native call; tangent: the same energies written in JAX (only the inputs that
+    # carry a tangent are differentiated)
+    out = _energies(kernel, *primals)
+    leaves, treedef = jax.tree_util.tree_flatten(primals)
+    dleaves = treedef.flatten_up_to(tangents)
+    live = [i for i, d in enumerate(dleaves) if not isinstance(d, SymbolicZero)]
+    if not live:
+        return out, tuple(jnp.zeros_like(o) for o in out)
+
+    def of_live(*xs):
+        full = list(leaves)
+        for i, x in zip(live, xs):
+            full[i] = x
+        return _energies_composed(*jax.tree_util.tree_unflatten(treedef, full))
+
+    _, tangent = jax.jvp(of_live, tuple(leaves[i] for i in live), tuple(dleaves[i] for i in live))
+    return out, tangent
+
+
+_energies.defjvp(_energies_jvp, symbolic_zeros=True)
+
+
+def energies(
+    model: Model,
+    q: Float[ArrayLike, " nq"],
+    v: Float[ArrayLike, " nv"],
+    *,
+    gravity: Float[ArrayLike, "3"] | None = None,
+    stiffness: Float[ArrayLike, " n_joint"] | None = None,
+    reference: Float[ArrayLike, " nq"] | None = None,
+) -> tuple[Float[Array, ""], Float[Array, ""], Float[Array, ""]]:
+    """``(kinetic energy, gravity potential, spring potential)`` of one state in one native call.
+
+    Kinetic energy ``½ Σ_k V_k·(𝕀_k V_k) + ½ Σ_d a_d v_d²`` (armature ``a``); gravity potential
+    ``−Σ_k m_k g·C_k`` (``gravity=None``: zero); spring potential ``½ Σ_j k_j |q_j ⊖ q_ref,j|²``
+    (``stiffness`` per joint, ``reference`` ``(nq,)``, as :class:`jaxbody.JointSprings`; default
+    none). A ``vmap`` batch (over states, saved times, or both) is one call; derivatives come
+    from the same sums written in JAX (:func:`jaxbody.unrolled.energies`). No checks.
+    """
+    dtype = model.body_pos.dtype
+    q = jnp.asarray(q, dtype)
+    v = jnp.asarray(v, dtype)
+    gravity = jnp.zeros(3, dtype) if gravity is None else jnp.asarray(gravity, dtype)
+    stiffness = jnp.zeros(model.joints.n_joint, dtype) if stiffness is None else jnp.asarray(stiffness, dtype)
+    reference = jnp.zeros(model.nq, dtype) if reference is None else jnp.asarray(reference, dtype)
+    kernel = _kernel(model.tree, model.joints, False, np.dtype(dtype), "energy")
+    return _energies(kernel, model, q, v, gravity, stiffness, reference)

@@ -369,7 +369,45 @@ class Scene(eqx.Module):
         """Forward dynamics with every declared effect (plus an optional extra ``tau``)."""
         return self.evaluate(t, q, v, tau)[0]
 
+    def _kernel_energies(self, q, v) -> tuple | None:
+        """``(kinetic, potential)`` from the forward-dynamics kernel's own straight-line program
+        (one native call per batch, or the unrolled scalar code), where the scene runs the
+        native or unrolled kernel and its conservative effects are gravity and at most one set
+        of joint springs; else ``None`` (the vectorised kinematics serve)."""
+        if self.path != "spatial":
+            return None
+        from .kernels import resolve_kernel
+
+        kernel = resolve_kernel(self.system, self.kernel)
+        conservative = [e for e in self.effects if e.conservative]
+        springs = [e for e in conservative if isinstance(e, JointSprings)]
+        if kernel not in ("native", "unrolled") or len(springs) > 1:
+            return None
+        if not all(isinstance(e, (Gravity, JointSprings)) for e in conservative):
+            return None
+        dtype = v.dtype
+        gravity = None
+        for e in conservative:
+            if isinstance(e, Gravity):
+                g = jnp.asarray(e.vector, dtype)
+                gravity = g if gravity is None else gravity + g
+        if kernel == "native":
+            from . import native
+
+            spring = dict(stiffness=springs[0].stiffness, reference=springs[0].reference) if springs else {}
+            kinetic, potential, elastic = native.energies(self.system, q, v, gravity=gravity, **spring)
+            return kinetic, potential + elastic
+        from . import unrolled
+
+        kinetic, potential = unrolled.energies(self.system, q, v, gravity=gravity)
+        if springs:
+            potential = potential + springs[0].potential_energy(EffectContext(self, jnp.zeros((), dtype), q, v))
+        return kinetic, potential
+
     def kinetic_energy(self, q, v) -> Float[Array, ""]:
+        fast = self._kernel_energies(q, v)
+        if fast is not None:
+            return fast[0]
         if self.path == "spatial":
             from .data import compute_data
             from .kernels import kinetic_energy
@@ -399,6 +437,9 @@ class Scene(eqx.Module):
         """Kinetic energy plus the potentials of the declared conservative effects."""
         if self.path == "system":
             return self.system.total_energy(q, v)
+        fast = self._kernel_energies(q, v)
+        if fast is not None:
+            return fast[0] + fast[1]
         return self.kinetic_energy(q, v) + self.potential_energy(q)
 
     def constraint_drift(self, t, q, v):

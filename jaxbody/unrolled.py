@@ -51,7 +51,7 @@ from ._types import Array, ArrayLike, Float
 from .joints import BALL, FREE, HINGE, SLIDE
 from .model import Model
 
-__all__ = ["MAX_BODIES", "MAX_DOFS", "applies", "forward_dynamics", "mass_matrix", "bias_forces"]
+__all__ = ["MAX_BODIES", "MAX_DOFS", "applies", "bias_forces", "energies", "forward_dynamics", "mass_matrix"]
 
 #: Largest tree (bodies, the world included) ``kernel="auto"`` gives the unrolled kernel on a
 #: backend other than the CPU (on the CPU it gives the native kernel, :mod:`jaxbody.native`); above
@@ -389,40 +389,85 @@ def _dof_owners(model):
     return out
 
 
+def _motions(model, S, v, gravity, want_acceleration=True):
+    """Body velocities ``V_k`` and bias accelerations ``A_k`` (root: ``(0, −g)``), root to leaves.
+
+    ``want_acceleration=False``: the velocities alone (``A`` is ``None``).
+    """
+    joints = model.joints
+    nb = model.n_body
+    parent = model.tree.parent
+    body_joints, _ = _structure(model)
+    dofs_of_joint = _dof_owners(model)
+    A_ground = (ZERO3, ZERO3 if gravity is None else tuple(-gi for gi in gravity))
+    V: list = [None] * nb
+    A: list = [None] * nb
+    for b in range(nb):
+        p = parent[b]
+        Vb = (ZERO3, ZERO3) if p < 0 else V[p]
+        Ab = A_ground if p < 0 else A[p]
+        for j in body_joints[b]:
+            ds = dofs_of_joint[j]
+            if joints.type[j] == FREE:
+                groups = [ds[:3], ds[3:]]  # translation moves the frame before the rotation
+            else:
+                groups = [ds]
+            for group in groups:
+                Vbefore = Vb
+                for d in group:
+                    Sd = S[d]
+                    if want_acceleration and not (_is_zero3(Vbefore[0]) and _is_zero3(Vbefore[1])):
+                        Sdot = _motion_cross(Vbefore, Sd)
+                        Ab = (_vadd(Ab[0], _vscale(v[d], Sdot[0])), _vadd(Ab[1], _vscale(v[d], Sdot[1])))
+                    Vb = (_vadd(Vb[0], _vscale(v[d], Sd[0])), _vadd(Vb[1], _vscale(v[d], Sd[1])))
+        V[b], A[b] = Vb, Ab
+    return V, (A if want_acceleration else None)
+
+
+def _energies(model, q, v, gravity) -> tuple:
+    """Kinetic energy ``T = ½ Σ_k V_k·(𝕀_k V_k) + ½ Σ_d a_d v_d²`` (armature ``a``) and the
+    gravity potential ``−Σ_k m_k g·C_k`` on scalars (``gravity=None``: zero), as
+    :func:`jaxbody.kernels.kinetic_energy` and the potential of :class:`jaxbody.Gravity`."""
+    R, x, c0, S = _kinematics(model, q)
+    inertia, com = _body_inertias(model, R, x, c0)
+    V, _ = _motions(model, S, v, None, want_acceleration=False)
+    twice = 0.0
+    for b in range(model.n_body):
+        if _is_zero3(V[b][0]) and _is_zero3(V[b][1]):
+            continue
+        twice = _add(twice, _spatial_dot(V[b], _inertia_apply(inertia[b], V[b])))
+    for d in range(model.nv):
+        twice = _add(twice, _mul(model.dof_armature[d], _mul(v[d], v[d])))
+    kinetic = _mul(0.5, twice)
+    potential = 0.0
+    if gravity is not None:
+        for b in range(model.n_body):
+            potential = _sub(potential, _mul(model.body_mass[b], _dot(gravity, com[b])))
+    return kinetic, potential
+
+
+def energies(
+    model: Model, q: Float[ArrayLike, " nq"], v: Float[ArrayLike, " nv"], *, gravity: Float[ArrayLike, "3"] | None = None
+) -> tuple[Float[Array, ""], Float[Array, ""]]:
+    """``(kinetic energy, gravity potential)`` by the unrolled kernel (no checks; ``gravity=None``:
+    no potential)."""
+    dtype = model.body_pos.dtype
+    q_s, v_s, g, _ = _scalar_inputs(model, q, v, gravity, None)
+    return tuple(jnp.asarray(e, dtype) for e in _energies(model, q_s, v_s, g))
+
+
 def _bias_and_mass(model, q, v, gravity, external, want_bias=True):
     """Joint-space ``M`` (dict over the tree's nonzero lower triangle) and ``bias`` (list)."""
     joints = model.joints
     nb, nv = model.n_body, model.nv
     parent = model.tree.parent
-    body_joints, dof_parent = _structure(model)
+    _, dof_parent = _structure(model)
     R, x, c0, S = _kinematics(model, q)
     inertia, com = _body_inertias(model, R, x, c0)
-    dofs_of_joint = _dof_owners(model)
 
     bias = None
     if want_bias:
-        A_ground = (ZERO3, ZERO3 if gravity is None else tuple(-gi for gi in gravity))
-        V: list = [None] * nb
-        A: list = [None] * nb
-        for b in range(nb):
-            p = parent[b]
-            Vb = (ZERO3, ZERO3) if p < 0 else V[p]
-            Ab = A_ground if p < 0 else A[p]
-            for j in body_joints[b]:
-                ds = dofs_of_joint[j]
-                if joints.type[j] == FREE:
-                    groups = [ds[:3], ds[3:]]  # translation moves the frame before the rotation
-                else:
-                    groups = [ds]
-                for group in groups:
-                    Vbefore = Vb
-                    for d in group:
-                        Sd = S[d]
-                        if not (_is_zero3(Vbefore[0]) and _is_zero3(Vbefore[1])):
-                            Sdot = _motion_cross(Vbefore, Sd)
-                            Ab = (_vadd(Ab[0], _vscale(v[d], Sdot[0])), _vadd(Ab[1], _vscale(v[d], Sdot[1])))
-                        Vb = (_vadd(Vb[0], _vscale(v[d], Sd[0])), _vadd(Vb[1], _vscale(v[d], Sd[1])))
-            V[b], A[b] = Vb, Ab
+        V, A = _motions(model, S, v, gravity)
         F: list = [None] * nb
         for b in range(nb):
             IA = _inertia_apply(inertia[b], A[b])

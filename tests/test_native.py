@@ -98,15 +98,16 @@ def test_batches_single_states_and_nested_vmap(models_dir):
     def close(x, y, tol=1e-11):
         assert float(jnp.max(jnp.abs(x - y))) <= tol * float(jnp.max(jnp.abs(y)))
 
-    close(jax.jit(fd("native"))(model, q[0], v[0]), fd("vectorised")(model, q[0], v[0]))
+    # (every call jitted: the vectorised kernel run op by op costs more than its compilation)
+    close(jax.jit(fd("native"))(model, q[0], v[0]), jax.jit(fd("vectorised"))(model, q[0], v[0]))
     batch = jax.jit(jax.vmap(fd("native"), in_axes=(None, 0, 0)))(model, q, v)
-    close(batch, jax.vmap(fd("vectorised"), in_axes=(None, 0, 0))(model, q, v))
-    shared_q = jax.vmap(fd("native"), in_axes=(None, None, 0))(model, q[0], v)
-    close(shared_q, jax.vmap(fd("vectorised"), in_axes=(None, None, 0))(model, q[0], v))
+    close(batch, jax.jit(jax.vmap(fd("vectorised"), in_axes=(None, 0, 0)))(model, q, v))
+    shared_q = jax.jit(jax.vmap(fd("native"), in_axes=(None, None, 0)))(model, q[0], v)
+    close(shared_q, jax.jit(jax.vmap(fd("vectorised"), in_axes=(None, None, 0)))(model, q[0], v))
     masses = model.body_mass * (1.0 + 0.2 * jnp.arange(3.0))[:, None]
-    nested = lambda kernel: jax.vmap(  # noqa: E731
+    nested = lambda kernel: jax.jit(jax.vmap(  # noqa: E731
         lambda mass: jax.vmap(fd(kernel), in_axes=(None, 0, 0))(eqx.tree_at(lambda m: m.body_mass, model, mass), q[:9], v[:9])
-    )(masses)
+    ))(masses)
     out = nested("native")
     assert out.shape == (3, 9, model.nv)
     close(out, nested("vectorised"))
@@ -114,8 +115,16 @@ def test_batches_single_states_and_nested_vmap(models_dir):
     assert float(jnp.max(jnp.abs(out[0] - out[2]))) > 1e-3
 
 
-def test_gradients_match_finite_differences(models_dir):
-    model = jb.from_mjcf(str(models_dir / "panda.xml"))  # its kernel is built once for this module
+def test_gradients_match_finite_differences():
+    """Derivatives along the state and force (the generated programs) and along the masses
+    (the vectorised kernel) against finite differences, on a tree of hinges and slides with
+    several joints on a body (the generated derivatives of quaternion joints:
+    ``test_generated_derivatives_equal_the_vectorised_kernel``; Panda's, in the slow job:
+    ``test_panda_rollout_gradient_with_generated_derivatives``)."""
+    from random_models import random_model
+
+    model = random_model(0, n_body=3, kinds=("hinge", "slide", "hinge2", "slide_hinge"), free_root=False)
+    assert 4 <= model.nv <= native.MAX_DERIVATIVE_DOFS
     rng = np.random.default_rng(7)
     q, v = _states(model, rng, 1)
     tau = jnp.asarray(rng.standard_normal(model.nv))
@@ -124,7 +133,7 @@ def test_gradients_match_finite_differences(models_dir):
         m = eqx.tree_at(lambda m: m.body_mass, model, mass)
         return kernels.acceleration(m, q, v, tau, gravity=model.gravity, kernel="native")
 
-    check_grads(fun, (q[0], v[0], tau, model.body_mass), order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6)
+    check_grads(jax.jit(fun), (q[0], v[0], tau, model.body_mass), order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6)
 
 
 def _small_tree():
@@ -381,3 +390,71 @@ def test_sines_of_large_joint_angles():
         a, b = run("native"), run("vectorised")
         assert float(jnp.max(jnp.abs(a - b))) <= 1e-10 * float(jnp.max(jnp.abs(b))), offset
 
+
+
+def _mujoco_energies(xml, q, v):
+    """MuJoCo's ``mj_energyVel`` and ``mj_energyPos`` (gravity and joint springs) per state."""
+    m = mujoco.MjModel.from_xml_string(xml)
+    D = mujoco.mjtDisableBit
+    m.opt.disableflags |= int(D.mjDSBL_CONSTRAINT | D.mjDSBL_CONTACT | D.mjDSBL_ACTUATION)
+    m.opt.enableflags |= int(mujoco.mjtEnableBit.mjENBL_ENERGY)
+    d = mujoco.MjData(m)
+    out = []
+    for i in range(q.shape[0]):
+        d.qpos[:], d.qvel[:] = q[i], v[i]
+        mujoco.mj_forward(m, d)
+        mujoco.mj_energyPos(m, d)
+        mujoco.mj_energyVel(m, d)
+        out.append((d.energy[1], d.energy[0]))
+    return np.array(out)
+
+
+@pytest.mark.parametrize("kernel", ["native", "unrolled"])
+def test_scene_energies_from_the_straight_line_kernels_equal_mujoco(kernel):
+    """A scene on the native or unrolled kernel evaluates its kinetic energy, gravity and
+    joint-spring potentials with the kernel's own straight-line program (one native call for
+    a batch of states): against MuJoCo's energies on a random tree with every joint kind and
+    springs on every joint (free root, ball joints: springs on the rotation vector)."""
+    from mjcf_random import random_mjcf
+
+    xml = random_mjcf(0, springs=True)
+    model = jb.from_mjcf(xml)
+    assert model.joints.nv > 6 and bool(jnp.any(model.joint_stiffness > 0))
+    scene = jb.scene(model, kernel=kernel)
+    assert scene._kernel_energies(jnp.asarray(model.qpos0), jnp.zeros(model.nv)) is not None
+    rng = np.random.default_rng(3)
+    q, v = _states(model, rng, 7)
+    ref = _mujoco_energies(xml, np.asarray(q), np.asarray(v))
+    kinetic = jax.jit(jax.vmap(scene.kinetic_energy))(q, v)
+    total = jax.jit(jax.vmap(scene.total_energy))(q, v)
+    assert np.allclose(np.asarray(kinetic), ref[:, 0], rtol=1e-11, atol=0)
+    scale = np.max(np.abs(ref[:, 1])) + np.max(ref[:, 0])
+    assert np.max(np.abs(np.asarray(total) - ref.sum(axis=1))) <= 1e-11 * scale
+    # the vectorised kernel's scene gives the same, and so do their gradients
+    plain = jb.scene(model, kernel="vectorised")
+    assert scene._kernel_energies(q[0], v[0]) is not None and plain._kernel_energies(q[0], v[0]) is None
+    g_fast = jax.grad(scene.total_energy, argnums=(0, 1))(q[1], v[1])
+    g_plain = jax.grad(plain.total_energy, argnums=(0, 1))(q[1], v[1])
+    for a, b in zip(g_fast, g_plain):
+        assert float(jnp.max(jnp.abs(a - b))) <= 1e-10 * float(jnp.max(jnp.abs(b)))
+
+
+def test_native_energies_derivatives_and_float32(models_dir):
+    model = jb.from_mjcf(str(models_dir / "panda.xml"))
+    rng = np.random.default_rng(5)
+    q, v = _states(model, rng, 1)
+    k = jnp.asarray(rng.uniform(0.5, 2.0, model.joints.n_joint))
+    r = jnp.asarray(model.qpos0) + 0.1
+
+    def total(q, v, mass, k):
+        m = eqx.tree_at(lambda m: m.body_mass, model, mass)
+        return sum(native.energies(m, q, v, gravity=model.gravity, stiffness=k, reference=r))
+
+    check_grads(total, (q[0], v[0], model.body_mass, k), order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6)
+    # float32: a batch of 40 states (two blocks of 16 lanes and a partial one) within 1e-5
+    m32 = jb.from_mjcf(str(models_dir / "panda.xml"), dtype=jnp.float32)
+    qs, vs = _states(model, rng, 40)
+    e64 = jax.vmap(lambda q, v: jnp.stack(native.energies(model, q, v, gravity=model.gravity)))(qs, vs)
+    e32 = jax.vmap(lambda q, v: jnp.stack(native.energies(m32, q, v, gravity=m32.gravity)))(qs.astype(jnp.float32), vs.astype(jnp.float32))
+    assert e32.dtype == jnp.float32
+    assert float(jnp.max(jnp.abs(e32.astype(jnp.float64) - e64))) <= 1e-5 * float(jnp.max(jnp.abs(e64)))

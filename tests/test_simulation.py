@@ -331,3 +331,35 @@ def test_batched_energy_error():
     assert err.shape == (2, 11)
     np.testing.assert_allclose(jnp.max(jnp.abs(err), axis=-1), sol.energy_drift)
     np.testing.assert_allclose(err[:, 0], 0.0)
+
+
+def test_constant_steps_bound_the_budget_and_the_checkpoints():
+    """A constant-step solve over a known span gets a step budget of the steps it can take (the
+    checkpointed adjoint then stores one checkpoint a step instead of planning for the whole
+    default budget); the solution is unchanged, float32 time with its rounding included, and
+    the gradient is the same as under the user's budget."""
+    from jaxbody.simulation import _step_bound
+
+    const = diffrax.ConstantStepSize()
+    assert 1001 <= _step_bound(const, 0.0, 1.0, 1e-3, 100_000, jnp.float64) <= 1004
+    assert _step_bound(const, 0.0, 1.0, 1e-3, 500, jnp.float64) == 500  # the user's smaller budget
+    assert _step_bound(diffrax.PIDController(rtol=1e-6, atol=1e-6), 0.0, 1.0, 1e-3, 100_000, jnp.float64) == 100_000
+    # float32 time: 100,000 steps of 1e-4 up to t = 10 may drift by a few hundred steps
+    bound32 = _step_bound(const, 0.0, 10.0, 1e-4, None, jnp.float32)
+    assert 100_002 < bound32 < 200_000
+    q0, v0 = jnp.array([1.0, 0.2]), jnp.array([0.5, -0.3])
+    sol32 = jb.simulate(oscillator(4.0, n=2), q0.astype(jnp.float32), v0.astype(jnp.float32), 10.0, solver="rk4",
+                        dt0=1e-4, saveat=diffrax.SaveAt(t1=True))
+    assert bool(sol32.success) and int(sol32.stats["num_steps"]) <= bound32
+    assert abs(float(sol32.t_final) - 10.0) < 1e-5
+
+    def loss(q0, max_steps):
+        sol = jb.simulate(oscillator(4.0, c=0.3, n=2), q0, v0, 1.0, solver="rk4", dt0=1e-2,
+                          saveat=diffrax.SaveAt(t1=True), max_steps=max_steps)
+        return jnp.sum(sol.q[-1] ** 2) + jnp.sum(sol.v[-1] ** 2), sol.stats["num_steps"]
+
+    (l_default, n_default), g_default = jax.value_and_grad(loss, has_aux=True)(q0, 100_000)
+    (l_tight, n_tight), g_tight = jax.value_and_grad(loss, has_aux=True)(q0, 101)
+    assert int(n_default) == int(n_tight) == 100
+    np.testing.assert_allclose(l_default, l_tight, rtol=1e-14)
+    np.testing.assert_allclose(g_default, g_tight, rtol=1e-12)
