@@ -94,6 +94,9 @@ def test_throughput_and_gradients_full_smoke(tmp_path):
     assert a["forward_mode_vs_checkpoint_rel"] < 1e-10
     assert a["backsolve_vs_checkpoint_rel"] < 1e-6
     assert rec["runs"]["chain2"]["checkpoint"]["longer_horizon"]["steps"] == 160  # --horizon-factor 16
+    paired = rec["runs"]["chain2"]["checkpoint"]["paired"]  # T3's ratio: interleaved pairs in one worker
+    assert len(paired["ratios"]) == 5 and all(r > 0 for r in paired["ratios"])
+    assert "interleaved pairs" in next(t["detail"] for t in rec["targets"] if t["id"] == "T3")
 
 
 @pytest.mark.slow  # about 35 s: compiles the unrolled kernel; throughput.py's smoke test stays in the default suite
