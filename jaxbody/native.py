@@ -1210,7 +1210,8 @@ def _split_jvp(kernel, mode, rows, out, primals, tangents, reference):
     forward-mode program ``mode`` through the linear primitive (transposed to its reverse-mode
     program in reverse mode); along every other input (parameters, gravity, loads, ...) by
     ``reference``, the same function written in JAX. Only inputs that carry a tangent are
-    differentiated. ``out``: the results (a tuple), ``rows``: the program's residual operands."""
+    differentiated. ``out``: the results (a tuple), ``rows``: the program's residual operands.
+    ``mode=None``: a program without derivative programs (all of the tangent from ``reference``)."""
     model, q, v, force = primals[:4]
     leaves, treedef = jax.tree_util.tree_flatten(primals)
     dleaves = treedef.flatten_up_to(tangents)
@@ -1218,7 +1219,7 @@ def _split_jvp(kernel, mode, rows, out, primals, tangents, reference):
     n_model = len(jax.tree_util.tree_leaves(model))
     state = [n_model, n_model + 1, n_model + 2]  # q, v, force
     tangent = None
-    if kernel.nv <= MAX_DERIVATIVE_DOFS and any(i in live for i in state):
+    if mode is not None and kernel.nv <= MAX_DERIVATIVE_DOFS and any(i in live for i in state):
         lin = []
         for i, x in zip(state, (q, v, force)):
             d = dleaves[i]
@@ -1385,20 +1386,7 @@ def _energies_jvp(kernel, primals, tangents):
     # value: the native call; tangent: the same energies written in JAX (only the inputs that
     # carry a tangent are differentiated)
     out = _energies(kernel, *primals)
-    leaves, treedef = jax.tree_util.tree_flatten(primals)
-    dleaves = treedef.flatten_up_to(tangents)
-    live = [i for i, d in enumerate(dleaves) if not isinstance(d, SymbolicZero)]
-    if not live:
-        return out, tuple(jnp.zeros_like(o) for o in out)
-
-    def of_live(*xs):
-        full = list(leaves)
-        for i, x in zip(live, xs):
-            full[i] = x
-        return _energies_composed(*jax.tree_util.tree_unflatten(treedef, full))
-
-    _, tangent = jax.jvp(of_live, tuple(leaves[i] for i in live), tuple(dleaves[i] for i in live))
-    return out, tangent
+    return out, _split_jvp(kernel, None, None, out, primals, tangents, _energies_composed)
 
 
 _energies.defjvp(_energies_jvp, symbolic_zeros=True)
