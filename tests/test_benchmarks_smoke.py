@@ -217,6 +217,11 @@ def test_step_kernel_smoke(tmp_path):
     assert [r["piece"] for r in rec["rows"]] == ["kernel", "simulate", "energy"]
     assert all(r["float64_ns"] > 0 and r["float32_ns"] > 0 and r["ratio"] > 0 for r in rec["rows"])
     assert "| panda | 16 | kernel |" in (tmp_path / "rec.md").read_text()
+    # the same loop alone, for a profiler (step_loop.py), on the kernels just built
+    cmd = [sys.executable, str(BENCH / "step_loop.py"), "--dtype", "float32", "--batch", "16", "--seconds", "0.01"]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env, cwd=REPO)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    assert "panda float32 B=16:" in p.stdout and "ns/state-step" in p.stdout
 
 
 def test_throughput_rerender_of_the_gpu_records(tmp_path):
