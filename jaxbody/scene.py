@@ -339,17 +339,25 @@ class Scene(eqx.Module):
             and all(isinstance(e, (Gravity, JointSprings, JointDampers, Actuation)) for e in self.effects)
         )
 
+    def _gravity(self, dtype):
+        """The sum of the declared uniform gravity fields (``None`` without any): the ground's
+        acceleration the straight-line kernels take."""
+        gravity = None
+        for e in self.effects:
+            if isinstance(e, Gravity):
+                g = jnp.asarray(e.vector, dtype)
+                gravity = g if gravity is None else gravity + g
+        return gravity
+
     def _evaluate_direct(self, t, q, v, tau):
         from .kernels import acceleration
 
         ctx = EffectContext(self, t, q, v)
-        gravity = None
+        gravity = self._gravity(v.dtype)
         total = None
         powers = []
         for e in self.effects:
             if isinstance(e, Gravity):
-                g = jnp.asarray(e.vector, v.dtype)
-                gravity = g if gravity is None else gravity + g
                 continue
             f = e.generalized_force(ctx)
             total = f if total is None else total + f
@@ -385,12 +393,7 @@ class Scene(eqx.Module):
             return None
         if not all(isinstance(e, (Gravity, JointSprings)) for e in conservative):
             return None
-        dtype = v.dtype
-        gravity = None
-        for e in conservative:
-            if isinstance(e, Gravity):
-                g = jnp.asarray(e.vector, dtype)
-                gravity = g if gravity is None else gravity + g
+        gravity = self._gravity(v.dtype)
         if kernel == "native":
             from . import native
 
@@ -401,7 +404,7 @@ class Scene(eqx.Module):
 
         kinetic, potential = unrolled.energies(self.system, q, v, gravity=gravity)
         if springs:
-            potential = potential + springs[0].potential_energy(EffectContext(self, jnp.zeros((), dtype), q, v))
+            potential = potential + springs[0].potential_energy(EffectContext(self, jnp.zeros((), v.dtype), q, v))
         return kinetic, potential
 
     def kinetic_energy(self, q, v) -> Float[Array, ""]:

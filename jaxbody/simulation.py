@@ -222,10 +222,7 @@ def _native_rk4_step(terms, args, y0):
     if len(y0) == 3 and (not slots or not dampers or len(slots) != 1):
         return None  # a work vector whose slots are not the dampers' alone
     dtype = y0[1].dtype
-    gravity = jnp.zeros(3, dtype)
-    for e in effects:
-        if isinstance(e, Gravity):
-            gravity = gravity + jnp.asarray(e.vector, dtype)
+    gravity = scene._gravity(dtype)  # None: no field (rk4_step's default)
     passive = {}
     if springs:
         passive.update(stiffness=springs[0].stiffness, reference=springs[0].reference)
