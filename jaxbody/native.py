@@ -196,6 +196,14 @@ class _Sym:
     def sin(self):
         return self.em.sincos(self)[0]
 
+    def stop(self):
+        """The same value with no derivative (the derivative programs treat it as a constant)."""
+        return self.em.emit(f"{self.name} /* constant */", "stop", (self,))
+
+
+def _stop(x):
+    return x.stop() if isinstance(x, _Sym) else x
+
 
 class _SymbolicModel:
     """What the unrolled passes read of a model, with every parameter a symbol ``p[i]``."""
@@ -440,7 +448,8 @@ typedef std::conditional<sizeof(T) == 8, int64_t, int32_t>::type IntT;
 typedef IntT I __attribute__((vector_size(sizeof(T) * W)));
 
 // sine and cosine of every lane: Cody-Waite reduction by pi/2 (two-part constant, fused
-// multiply-adds) and Cephes' minimax polynomials on [-pi/4, pi/4], about 1 ulp for the angles
+// multiply-adds) and Cephes' minimax polynomials on [-pi/4, pi/4] (six terms in double, three in
+// single precision), about 1 ulp for the angles
 // of joints (|x| < 1e5); larger angles (and NaN) go lane by lane through libm
 static inline void sincos_(double x, double* s, double* c) { sincos(x, s, c); }
 static inline void sincos_(float x, float* s, float* c) { sincosf(x, s, c); }
@@ -473,6 +482,22 @@ static inline void vsincos(V x, V& s, V& c, int n) {
       V r = x - k * pio2_hi;  // contracted to a fused multiply-add
       r = r - k * pio2_lo;
       const V z = r * r;
+      if constexpr (sizeof(T) == 4) {
+        // Cephes' single-precision polynomials (sinf, cosf): three terms each suffice
+        V ps = V{} + T(-1.9515295891e-4f);
+        ps = ps * z + T(8.3321608736e-3f);
+        ps = ps * z + T(-1.6666654611e-1f);
+        V pc = V{} + T(2.443315711809948e-5f);
+        pc = pc * z + T(-1.388731625493765e-3f);
+        pc = pc * z + T(4.166664568298827e-2f);
+        const V sr = r + r * z * ps;
+        const V cr = T(1.0) - T(0.5) * z + z * z * pc;
+        const I swap = (quadrant & 1) != 0;
+        const V s0 = swap ? cr : sr, c0 = swap ? sr : cr;
+        s = ((quadrant & 2) != 0) ? -s0 : s0;
+        c = (((quadrant + 1) & 2) != 0) ? -c0 : c0;
+        return;
+      }
       V ps = V{} + T(1.58962301576546568060e-10);
       ps = ps * z + T(-2.50507477628578072866e-8);
       ps = ps * z + T(2.75573136213857245213e-6);
@@ -682,6 +707,8 @@ def _active(ops: list, seeds: set) -> set:
         if kind == "input":
             if args[0] in seeds:
                 active.add(out.name)
+        elif kind == "stop":
+            continue
         elif any(isinstance(a, _Sym) and a.name in active for a in args):
             active.update(o.name for o in (out if kind == "sincos" else (out,)))
     return active
@@ -699,7 +726,7 @@ def _tangent_program(ops: list, seeds: dict) -> dict:
         return tan.get(a.name, 0.0) if isinstance(a, _Sym) else 0.0
 
     for out, kind, args in ops:
-        if kind == "input":
+        if kind in ("input", "stop"):
             continue
         ds = [d(a) for a in args]
         if all(_is_zero(x) for x in ds):
@@ -747,7 +774,7 @@ def _adjoint_program(ops: list, active: set, seeds: list) -> dict:
     for value, ct in seeds:
         acc(value, ct)
     for out, kind, args in reversed(ops):
-        if kind == "input":
+        if kind in ("input", "stop"):
             continue
         if kind == "sincos":
             s, c = out
@@ -818,9 +845,26 @@ def _generate(tree, joints, with_external: bool, dtype, mode: str = "fd") -> str
         flat = _inputs(em, "ext", 6 * tree.n_body, slots["ext"])
         ext = [tuple(flat[6 * b : 6 * b + 6]) for b in range(tree.n_body)]
 
+    derivative = mode.split("_")[-1] if mode not in ("fd", "rk4") else None
+
     def acceleration(q, v, f):
         M, bias, lam = unrolled._bias_and_mass(model, q, v, g, ext)
-        return unrolled._ltdl_solve(M, lam, [fi - b for fi, b in zip(f, bias)])
+        L, inv_d = unrolled._ltdl_factor(M, lam)
+        a = unrolled._ltdl_substitute(L, inv_d, lam, [fi - b for fi, b in zip(f, bias)])
+        if derivative != "vjp":
+            return a
+        # The reverse-mode programs differentiate a = a₀ + M⁻¹ (f − τ(q, v, a₀)), a₀ and the factor
+        # of M held constant: equal to a up to rounding, its derivative is forward dynamics'
+        # (implicit function theorem on τ(q, v, a) = f): M⁻¹ (∂f − ∂τ/∂q ∂q − ∂τ/∂v ∂v). The
+        # derivative passes go through inverse dynamics (Newton–Euler), not through the
+        # composite inertias and the factorisation (forward mode stays on the direct program,
+        # whose tangent is shorter than the tangent of inverse dynamics).
+        a0 = [_stop(x) for x in a]
+        L0 = {k: _stop(x) for k, x in L.items()}
+        inv_d0 = [_stop(x) for x in inv_d]
+        tau = unrolled._inverse_dynamics(model, q, v, a0, g, ext)
+        correction = unrolled._ltdl_substitute(L0, inv_d0, lam, [fi - t for fi, t in zip(f, tau)])
+        return [x + c for x, c in zip(a0, correction)]
 
     if step:
         h = _inputs(em, "h", 1, slots["h"])[0]
@@ -836,7 +880,6 @@ def _generate(tree, joints, with_external: bool, dtype, mode: str = "fd") -> str
     else:
         outputs = [acceleration(q, v, f)]
     primal = list(em.ops)
-    derivative = mode.split("_")[-1] if mode not in ("fd", "rk4") else None
     if derivative is None:
         results = outputs
     elif derivative == "jvp":

@@ -358,9 +358,11 @@ class Solution(eqx.Module):
             (``"actuation"``, ``"dampers"`` (negative: minus the dissipation), ``"loads"``,
             ``"support"``; for a :class:`jaxbody.Phases` run also ``"switches"``, the energy
             change at the switches up to each time); empty when there are none.
-        energy_drift: ``max_t |E(t) − E(t0) − Σ work(t)| / max(|E(t0)|, tiny)``: how far the energy
-            balance is from closing (a check of the integration, meaningful with damping and
-            actuation too); ``None`` without energy.
+        energy_drift: ``max_t |E(t) − E(t0) − Σ work(t)| / max(|E(t0)|, tiny)`` over the saved
+            times: how far the energy balance is from closing (a check of the integration,
+            meaningful with damping and actuation too); ``None`` without energy. ``E(t0)`` is
+            ``energy0``, so the drift is measured from the start whatever the saved times are
+            (with ``SaveAt(t1=True)`` alone, it is the balance at ``t1``).
         constraint_drift: constraint residuals at the saved times, ``{"position": (n_save, s),
             "velocity": (n_save, s)}`` (position residuals ``φ(t, q)`` of the holonomic rows, zero
             on non-holonomic rows; velocity residuals ``f*(t, q, v)`` of every row), or ``None``
@@ -387,6 +389,9 @@ class Solution(eqx.Module):
         repartition_times: times at which the coordinate partition was re-chosen (the first
             ``jaxbody.maggi.MAX_RECORDED_REPARTITIONS``, NaN in unused slots), or ``None``
             without an automatically partitioned constraint set.
+        energy0: total energy ``E(t0)`` of the initial state (after ``project_initial``), the
+            reference of ``energy_balance``, ``energy_error`` and ``energy_drift``; ``None``
+            without energy.
     """
 
     t: Float[Array, " n_save"]
@@ -405,6 +410,7 @@ class Solution(eqx.Module):
     layout: tuple = eqx.field(static=True, default=())
     interpolation: Any = None
     repartition_times: Any = None
+    energy0: Float[Array, ""] | None = None
 
     def evaluate(self, t: ArrayLike) -> tuple[Float[Array, " nq"], Float[Array, " nv"]]:
         """``(q, v)`` at any time ``t`` in ``[t0, t_final]`` from the solver's dense output
@@ -433,14 +439,14 @@ class Solution(eqx.Module):
         """``E(t) − E(t0) − Σ work(t)`` (zero up to integration error)."""
         if self.energy is None:
             return None
-        return _balance(self.energy, self.work)
+        return _balance(self.energy, self.work, self.energy0)
 
     @property
     def energy_error(self) -> Float[Array, "*batch n_save"] | None:
         """Signed relative balance error ``(E − E0 − Σ work) / max(|E0|, tiny)`` per saved time."""
         if self.energy is None:
             return None
-        return _balance(self.energy, self.work) / _scale(self.energy)
+        return _balance(self.energy, self.work, self.energy0) / _scale(self.energy, self.energy0)
 
     # ------------------------------------------------------------------ files
     def _layout_dict(self):
@@ -461,6 +467,8 @@ class Solution(eqx.Module):
         if self.energy is not None:
             arrays["energy"] = np.asarray(self.energy)
             arrays["energy_drift"] = np.asarray(self.energy_drift)
+            if self.energy0 is not None:
+                arrays["energy0"] = np.asarray(self.energy0)
         for k, w in self.work.items():
             arrays[f"work/{k}"] = np.asarray(w)
         for k, s in self.stats.items():
@@ -523,6 +531,7 @@ def load_solution(path) -> Solution:
         energy=jnp.asarray(d["energy"]) if "energy" in d else None,
         work=work,
         energy_drift=jnp.asarray(d["energy_drift"]) if "energy_drift" in d else None,
+        energy0=jnp.asarray(d["energy0"]) if "energy0" in d else None,
         constraint_drift={k[17:]: jnp.asarray(v) for k, v in d.items() if k.startswith("constraint_drift/")} or None,
         reactions=jnp.asarray(d["reactions"]) if "reactions" in d else None,
         stats=stats,
@@ -540,15 +549,22 @@ def _tuples(x):
     return tuple(_tuples(y) for y in x) if isinstance(x, list) else x
 
 
-def _scale(energy):
-    e0 = energy[..., :1]
+def _scale(energy, energy0=None):
+    e0 = energy[..., :1] if energy0 is None else energy0[..., None]
     return jnp.maximum(jnp.abs(e0), jnp.finfo(energy.dtype).tiny)
 
 
-def _balance(energy, work):
-    out = energy - energy[..., :1]
-    for w in work.values():
-        out = out - (w - w[..., :1])
+def _balance(energy, work, energy0=None, work0=None):
+    """``E(t) − E(t0) − Σ (w(t) − w(t0))``. ``energy0``: ``E(t0)``, with ``work0`` the work
+    vector at ``t0`` (default zero, in ``work``'s order); without ``energy0`` (a solution read
+    from an older file) the first saved time stands for ``t0``."""
+    e0 = energy[..., :1] if energy0 is None else energy0[..., None]
+    out = energy - e0
+    for i, w in enumerate(work.values()):
+        if energy0 is None:
+            out = out - (w - w[..., :1])
+        else:
+            out = out - (w if work0 is None else w - work0[..., i : i + 1])
     return out
 
 
@@ -1187,10 +1203,12 @@ def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps,
         energy = jnp.where(finite, jax.vmap(scene.total_energy)(qs, vs), jnp.nan)
         if len(ys) == 3:
             work = {name: ys[2][:, i] for i, name in enumerate(work_names)}
-        bal = _balance(energy, work) / _scale(energy)
+        # the balance from the initial state, not from the first saved time (which may be later)
+        energy0 = scene.total_energy(y0[0], y0[1])
+        bal = _balance(energy, work, energy0, y0[2] if len(y0) == 3 else None) / _scale(energy, energy0)
         drift = jnp.max(jnp.where(finite, jnp.abs(bal), 0.0))
     else:
-        energy = drift = None
+        energy = drift = energy0 = None
         qs, vs = q, v
     cdrift = reactions = None
     if scene.constraints is not None:
@@ -1213,7 +1231,7 @@ def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps,
     out = Solution(
         t=ts, q=q, v=v, energy=energy, work=work, energy_drift=drift, constraint_drift=cdrift,
         reactions=reactions, stats=stats, result=result, t_final=tf[-1], q_final=yf[0][-1], v_final=yf[1][-1], layout=layout,
-        interpolation=sol.interpolation if dense else None, repartition_times=repartition_times,
+        interpolation=sol.interpolation if dense else None, repartition_times=repartition_times, energy0=energy0,
     )
     return out, (yf[2][-1] if len(yf) == 3 else None)
 
@@ -1324,7 +1342,7 @@ def _join_phases(ts, parts, ends, switches, work_names, energetic):
 
     q_out = join([p.q for p in parts])
     v_out = join([p.v for p in parts])
-    energy = work = drift = None
+    energy = work = drift = energy0 = None
     if energetic:
         energy = join([p.energy for p in parts])
         work = {name: join([p.work[name] for p in parts]) for name in work_names}
@@ -1332,7 +1350,8 @@ def _join_phases(ts, parts, ends, switches, work_names, energetic):
             work["switches"] = sum((jnp.where(ts > end, jump, 0.0) for end, (_, _, jump, _) in zip(ends, switches)),
                                    jnp.zeros(ts.shape, dtype))
         finite = jnp.isfinite(energy)
-        drift = jnp.max(jnp.where(finite, jnp.abs(_balance(energy, work) / _scale(energy)), 0.0))
+        energy0 = parts[0].energy0
+        drift = jnp.max(jnp.where(finite, jnp.abs(_balance(energy, work, energy0) / _scale(energy, energy0)), 0.0))
     reactions = cdrift = None
     rows = [None if p.reactions is None else p.reactions.shape[-1] for p in parts]
     if any(r is not None for r in rows):
@@ -1366,7 +1385,7 @@ def _join_phases(ts, parts, ends, switches, work_names, energetic):
     return Solution(
         t=ts, q=q_out, v=v_out, energy=energy, work=work or {}, energy_drift=drift, constraint_drift=cdrift,
         reactions=reactions, stats=stats, result=result, t_final=final.t_final, q_final=final.q_final,
-        v_final=final.v_final, layout=_phases_layout(parts),
+        v_final=final.v_final, layout=_phases_layout(parts), energy0=energy0,
     )
 
 

@@ -389,10 +389,12 @@ def _dof_owners(model):
     return out
 
 
-def _motions(model, S, v, gravity, want_acceleration=True):
+def _motions(model, S, v, gravity, want_acceleration=True, acceleration=None):
     """Body velocities ``V_k`` and bias accelerations ``A_k`` (root: ``(0, −g)``), root to leaves.
 
-    ``want_acceleration=False``: the velocities alone (``A`` is ``None``).
+    ``want_acceleration=False``: the velocities alone (``A`` is ``None``). ``acceleration``
+    (per DoF): the body accelerations of these joint accelerations, ``A_k + Σ S_d a_d`` over
+    the DoFs from the root to ``k`` (inverse dynamics); default zero.
     """
     joints = model.joints
     nb = model.n_body
@@ -419,6 +421,8 @@ def _motions(model, S, v, gravity, want_acceleration=True):
                     if want_acceleration and not (_is_zero3(Vbefore[0]) and _is_zero3(Vbefore[1])):
                         Sdot = _motion_cross(Vbefore, Sd)
                         Ab = (_vadd(Ab[0], _vscale(v[d], Sdot[0])), _vadd(Ab[1], _vscale(v[d], Sdot[1])))
+                    if want_acceleration and acceleration is not None:
+                        Ab = (_vadd(Ab[0], _vscale(acceleration[d], Sd[0])), _vadd(Ab[1], _vscale(acceleration[d], Sd[1])))
                     Vb = (_vadd(Vb[0], _vscale(v[d], Sd[0])), _vadd(Vb[1], _vscale(v[d], Sd[1])))
         V[b], A[b] = Vb, Ab
     return V, (A if want_acceleration else None)
@@ -456,6 +460,41 @@ def energies(
     return tuple(jnp.asarray(e, dtype) for e in _energies(model, q_s, v_s, g))
 
 
+def _joint_forces(model, S, inertia, com, c0, V, A, external) -> list:
+    """``τ_d = S_d · Σ_{k ⪰ body(d)} (𝕀_k A_k + V_k ×* 𝕀_k V_k − f_k^ext)``: the Newton–Euler
+    body forces, summed leaves to root and projected on each DoF's axis."""
+    nb = model.n_body
+    parent = model.tree.parent
+    F: list = [None] * nb
+    for b in range(nb):
+        IA = _inertia_apply(inertia[b], A[b])
+        IV = _inertia_apply(inertia[b], V[b])
+        VxIV = _force_cross(V[b], IV)
+        L, p_ = _vadd(IA[0], VxIV[0]), _vadd(IA[1], VxIV[1])
+        if external is not None:
+            f = external[b][:3]
+            t = external[b][3:]
+            L = _vsub(L, _vadd(t, _cross(_vsub(com[b], c0), f)))
+            p_ = _vsub(p_, f)
+        F[b] = (L, p_)
+    for b in reversed(range(nb)):
+        p = parent[b]
+        if p >= 0:
+            F[p] = (_vadd(F[p][0], F[b][0]), _vadd(F[p][1], F[b][1]))
+    dof_body = model.joints.dof_body
+    return [_spatial_dot(S[d], F[dof_body[d]]) for d in range(model.nv)]
+
+
+def _inverse_dynamics(model, q, v, acceleration, gravity, external) -> list:
+    """``τ = M(q) a + bias(q, v)`` by the recursive Newton–Euler passes (armature included): the
+    residual whose derivatives give those of forward dynamics (``∂a = M⁻¹ (∂τ − ∂_x τ)``)."""
+    R, x, c0, S = _kinematics(model, q)
+    inertia, com = _body_inertias(model, R, x, c0)
+    V, A = _motions(model, S, v, gravity, acceleration=acceleration)
+    tau = _joint_forces(model, S, inertia, com, c0, V, A, external)
+    return [_add(t, _mul(model.dof_armature[d], acceleration[d])) for d, t in enumerate(tau)]
+
+
 def _bias_and_mass(model, q, v, gravity, external, want_bias=True):
     """Joint-space ``M`` (dict over the tree's nonzero lower triangle) and ``bias`` (list)."""
     joints = model.joints
@@ -468,24 +507,7 @@ def _bias_and_mass(model, q, v, gravity, external, want_bias=True):
     bias = None
     if want_bias:
         V, A = _motions(model, S, v, gravity)
-        F: list = [None] * nb
-        for b in range(nb):
-            IA = _inertia_apply(inertia[b], A[b])
-            IV = _inertia_apply(inertia[b], V[b])
-            VxIV = _force_cross(V[b], IV)
-            L, p_ = _vadd(IA[0], VxIV[0]), _vadd(IA[1], VxIV[1])
-            if external is not None:
-                f = external[b][:3]
-                t = external[b][3:]
-                L = _vsub(L, _vadd(t, _cross(_vsub(com[b], c0), f)))
-                p_ = _vsub(p_, f)
-            F[b] = (L, p_)
-        for b in reversed(range(nb)):
-            p = parent[b]
-            if p >= 0:
-                F[p] = (_vadd(F[p][0], F[b][0]), _vadd(F[p][1], F[b][1]))
-        dof_body = joints.dof_body
-        bias = [_spatial_dot(S[d], F[dof_body[d]]) for d in range(nv)]
+        bias = _joint_forces(model, S, inertia, com, c0, V, A, external)
 
     # composite inertias, leaves to root
     Ic = list(inertia)
@@ -506,9 +528,10 @@ def _bias_and_mass(model, q, v, gravity, external, want_bias=True):
     return M, bias, dof_parent
 
 
-def _ltdl_solve(M: dict, dof_parent: Sequence[int], b: list) -> list:
-    """Solve ``M x = b`` with Featherstone's tree-sparse ``M = Lᵀ D L`` (in place on copies)."""
-    n = len(b)
+def _ltdl_factor(M: dict, dof_parent: Sequence[int]) -> tuple[dict, list]:
+    """Featherstone's tree-sparse ``M = Lᵀ D L``: the strictly lower entries of ``L`` (dict over
+    the tree's nonzero pattern) and ``D⁻¹`` (list)."""
+    n = max(k for k, _ in M) + 1
     M = dict(M)
     lam = dof_parent
     inv_d: list = [None] * n
@@ -523,19 +546,31 @@ def _ltdl_solve(M: dict, dof_parent: Sequence[int], b: list) -> list:
                 j = lam[j]
             M[k, i] = a
             i = lam[i]
+    return {(i, j): m for (i, j), m in M.items() if i != j}, inv_d
+
+
+def _ltdl_substitute(L: dict, inv_d: list, dof_parent: Sequence[int], b: list) -> list:
+    """Solve ``Lᵀ D L x = b`` with the factor of :func:`_ltdl_factor`."""
+    n = len(b)
+    lam = dof_parent
     x = list(b)
     for i in reversed(range(n)):  # Lᵀ y = b
         j = lam[i]
         while j >= 0:
-            x[j] = _sub(x[j], _mul(M[i, j], x[i]))
+            x[j] = _sub(x[j], _mul(L[i, j], x[i]))
             j = lam[j]
     x = [_mul(xi, inv_d[i]) for i, xi in enumerate(x)]  # D z = y
     for i in range(n):  # L x = z
         j = lam[i]
         while j >= 0:
-            x[i] = _sub(x[i], _mul(M[i, j], x[j]))
+            x[i] = _sub(x[i], _mul(L[i, j], x[j]))
             j = lam[j]
     return x
+
+
+def _ltdl_solve(M: dict, dof_parent: Sequence[int], b: list) -> list:
+    """Solve ``M x = b`` with Featherstone's tree-sparse ``M = Lᵀ D L``."""
+    return _ltdl_substitute(*_ltdl_factor(M, dof_parent), dof_parent, b)
 
 
 def _stack(values: list, dtype) -> Array:

@@ -173,6 +173,26 @@ def test_nan_trial_stage_is_a_rejected_step():
     np.testing.assert_allclose(sol.q[:, 0], np.sin(np.asarray(sol.t)), atol=1e-6)
 
 
+def test_energy_drift_is_measured_from_t0_whatever_the_saved_times():
+    """With only t1 saved (or saved times after t0), the balance still starts at E(t0): the
+    drift of a coarse RK4 run is what the same run reports at t1 when t0 is saved too."""
+    m = pendulum(damping=0.3, stiffness=2.0)
+    sc = jb.scene(m, actuation=lambda t, q, v: 0.5 * jnp.sin(3.0 * t)[None])
+    q0, v0 = jnp.array([0.8]), jnp.array([0.0])
+    run = lambda saveat: jb.simulate(sc, q0, v0, 3.0, solver="rk4", dt0=0.1, saveat=saveat)  # noqa: E731
+    full = run(diffrax.SaveAt(ts=jnp.array([0.0, 1.5, 3.0])))
+    end = run(diffrax.SaveAt(t1=True))
+    later = run(diffrax.SaveAt(ts=jnp.array([1.5, 3.0])))
+    np.testing.assert_allclose(float(end.energy0), float(sc.total_energy(q0, v0)), rtol=1e-14)
+    np.testing.assert_allclose(float(full.energy0), float(full.energy[0]), rtol=1e-14)
+    err_t1 = float(full.energy_error[-1])
+    assert abs(err_t1) > 1e-7  # dt = 0.1 with damping and actuation: a visible balance error
+    np.testing.assert_allclose(float(end.energy_error[-1]), err_t1, rtol=1e-12)
+    np.testing.assert_allclose(float(end.energy_drift), abs(err_t1), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(later.energy_error), np.asarray(full.energy_error[1:]), rtol=1e-12)
+    np.testing.assert_allclose(float(later.energy_drift), float(full.energy_drift), rtol=1e-12)
+
+
 def test_energy_balance_closes_with_dampers_springs_and_actuation():
     m = pendulum(damping=0.3, stiffness=2.0)
     sc = jb.scene(m, actuation=lambda t, q, v: 0.5 * jnp.sin(3.0 * t)[None])
