@@ -123,7 +123,7 @@ def _rollout_pieces(args, model, q, v, tau, w):
     import numpy as np
 
     import jaxbody as jb
-    from jaxbody import kernels
+    from jaxbody import kernels, native
     from jaxbody.simulation import RK4Stages
 
     steps, dt = 1000, 1e-3
@@ -139,10 +139,24 @@ def _rollout_pieces(args, model, q, v, tau, w):
 
     loop_fd = jax.jit(lambda q, v: jax.lax.fori_loop(0, steps, lambda i, c: (c[0], c[1] + 1e-9 * fd(*c)), (q, v)))
     loop_vjp = jax.jit(lambda q, v: jax.lax.fori_loop(0, steps, vjp_step, (q, v)))
+
+    def rk4(q, v):
+        return native.rk4_step(model, q, v, dt, tau, gravity=model.gravity)[:2]
+
+    def rk4_vjp_step(i, c):
+        _, pullback = jax.vjp(rk4, c[0], c[1])
+        dq, dv = pullback((c[0], c[1]))
+        return c[0] + 1e-9 * dq, c[1] + 1e-9 * dv
+
+    loop_rk4 = jax.jit(lambda q, v: jax.lax.fori_loop(0, steps, lambda i, c: rk4(*c), (q, v)))
+    loop_rk4_vjp = jax.jit(lambda q, v: jax.lax.fori_loop(0, steps, rk4_vjp_step, (q, v)))
     rows = []
     t_fd = per_step(lambda: loop_fd(q, v))
     rows.append(("fori_loop: forward dynamics", t_fd, None))
     rows.append(("fori_loop: vjp (reverse-mode program, value unused)", per_step(lambda: loop_vjp(q, v)), None))
+    a = per_step(lambda: loop_rk4(q, v))
+    b = per_step(lambda: loop_rk4_vjp(q, v))
+    rows += [("fori_loop: generated RK4 step", a, None), ("fori_loop: its reverse-mode program (value unused)", b, b / a)]
 
     n_state = model.nq + model.nv
     A = jnp.asarray(np.random.default_rng(0).standard_normal((n_state, n_state)) / np.sqrt(n_state))

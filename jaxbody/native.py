@@ -28,7 +28,11 @@ How it plugs into JAX:
   use): a forward-mode pass emits the tangent of every operation along ``(dq, dv, dτ)``
   (:func:`_tangent_program`), a reverse-mode pass the adjoint of every value that depends on
   the state, last operation first (:func:`_adjoint_program`); each is compiled like the
-  forward program. A :func:`jax.custom_jvp` rule takes the value from the native call and the
+  forward program. The reverse-mode program differentiates forward dynamics implicitly: with
+  ``a₀`` the computed acceleration and ``M = LᵀDL`` its factor held constant, it reverses
+  ``a₀ + M⁻¹ (τ − ID(q, v, a₀))`` (``ID``: inverse dynamics by the Newton–Euler passes), whose
+  derivative is that of ``a``, so its reverse sweep goes through the Newton–Euler passes once
+  and one solve with the factor, not through the composite inertias and the factorisation. A :func:`jax.custom_jvp` rule takes the value from the native call and the
   tangent along the state and force from a primitive that is linear in the tangents, runs
   the forward-mode program, and transposes to the reverse-mode one (so ``jvp``/``jacfwd``
   and ``grad``/``vjp``/``jacrev``, under ``vmap`` too, are native calls). Tangents of the
@@ -1224,9 +1228,9 @@ class _ParameterModel:
 
 
 #: Largest number of DoFs whose derivatives the generated programs serve; above it the
-#: vectorised kernel gives the tangents. The derivative programs are about 2.5 times the
-#: forward one: the pair compiles in about 7 s for the Panda arm, 20 s for a 12-link chain
-#: and 96 s for a 20-link chain (once per tree, then cached; benchmarks/native_build.py).
+#: vectorised kernel gives the tangents. The derivative programs are about 2–2.5 times the
+#: forward one: the pair compiles in about 7 s for the Panda arm, 18 s for a 12-link chain
+#: and 70 s for a 20-link chain (once per tree, then cached; benchmarks/native_build.py).
 MAX_DERIVATIVE_DOFS = 12
 
 
