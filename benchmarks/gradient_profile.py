@@ -7,7 +7,7 @@ each piece on one state of the Panda arm, jitted, for the native kernel (whose d
 respect to the state are its generated forward- and reverse-mode programs) and the vectorised
 kernel:
 
-    .venv/bin/python benchmarks/gradient_profile.py [--model panda] [--min-time 0.5]
+    .venv/bin/python benchmarks/gradient_profile.py [--model panda|chain20] [--min-time 0.5]
 
 Writes ``benchmarks/results/gradient_profile.{md,json}``.
 """
@@ -24,7 +24,7 @@ from _common import set_default_xla_flags  # noqa: E402
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--model", default="panda", help="a robot shipped in jaxbody/models")
+    p.add_argument("--model", default="panda", help="a robot shipped in jaxbody/models, or chainN")
     p.add_argument("--kernels", default="native,vectorised")
     p.add_argument("--min-time", type=float, default=0.5)
     p.add_argument("--out", default=str(RESULTS))
@@ -46,9 +46,13 @@ def main(argv=None):
     import jaxbody as jb
     from jaxbody import kernels
 
-    with warnings.catch_warnings():
+    import tempfile
+
+    from dynamics import model_path
+
+    with warnings.catch_warnings(), tempfile.TemporaryDirectory() as tmp:
         warnings.simplefilter("ignore")
-        model = jb.from_mjcf(str(pathlib.Path(jb.__file__).parent / "models" / f"{args.model}.xml"))
+        model = jb.from_mjcf(str(model_path(args.model, pathlib.Path(jb.__file__).parent / "models", pathlib.Path(tmp))))
     rng = np.random.default_rng(0)
     q = jb.normalize_qpos(model, jnp.asarray(np.asarray(model.qpos0) + 0.3 * rng.standard_normal(model.nq)))
     v = jnp.asarray(rng.standard_normal(model.nv))

@@ -178,6 +178,27 @@ def test_generated_derivatives_equal_the_vectorised_kernel():
     close(jax.jit(jvp("native"))(), jax.jit(jvp("vectorised"))())
 
 
+@pytest.mark.slow  # builds ANYmal C's forward- and reverse-mode programs (about a minute)
+def test_generated_derivatives_of_an_18_dof_free_base_robot(models_dir):
+    """Trees above 12 DoFs (up to MAX_DERIVATIVE_DOFS) take their state derivatives from the
+    generated programs too: ANYmal C (free base, 18 DoFs), with body loads, both modes."""
+    model = jb.from_mjcf(str(models_dir / "anymal_c.xml"))
+    assert 12 < model.nv <= native.MAX_DERIVATIVE_DOFS
+    rng = np.random.default_rng(5)
+    q, v = _states(model, rng, 1)
+    tau = jnp.asarray(rng.standard_normal(model.nv))
+    ext = jnp.asarray(rng.standard_normal((model.n_body, 6)))
+
+    def fd(kernel):
+        return lambda q, v, t: kernels.acceleration(model, q, v, t, gravity=model.gravity, external=ext, kernel=kernel)
+
+    for jac in (jax.jacfwd, jax.jacrev):
+        got = jax.jit(jac(fd("native"), argnums=(0, 1, 2)))(q[0], v[0], tau)
+        want = jax.jit(jac(fd("vectorised"), argnums=(0, 1, 2)))(q[0], v[0], tau)
+        for a, b in zip(got, want):
+            assert float(jnp.max(jnp.abs(a - b))) <= 1e-10 * max(float(jnp.max(jnp.abs(b))), 1.0)
+
+
 @pytest.mark.slow  # about 15 s: the fallback compiles the unrolled kernel's second derivatives
 def test_second_derivatives_through_the_native_kernel():
     """The derivative of the generated derivative (its residuals' part from the same map

@@ -338,8 +338,11 @@ def test_constant_steps_bound_the_budget_and_the_checkpoints():
     checkpointed adjoint then stores one checkpoint a step instead of planning for the whole
     default budget); the solution is unchanged, float32 time with its rounding included, and
     the gradient is the same as under the user's budget."""
-    from jaxbody.simulation import _step_bound
+    from jaxbody.simulation import _step_bound, default_checkpoints
 
+    # the memory budget holds one checkpoint a step for 1000 steps of a 20-link chain (40 states)
+    assert default_checkpoints(1016, 40) == 1016
+    assert default_checkpoints(10**6, 14) == (1 << 20) // (3 * 14 * 8)
     const = diffrax.ConstantStepSize()
     assert 1001 <= _step_bound(const, 0.0, 1.0, 1e-3, 100_000, jnp.float64) <= 1004
     assert _step_bound(const, 0.0, 1.0, 1e-3, 500, jnp.float64) == 500  # the user's smaller budget
