@@ -1062,8 +1062,10 @@ def default_checkpoints(max_steps: int | None, n_state: int, itemsize: int = 8) 
     """Checkpoints of the default adjoint: as many as :data:`CHECKPOINT_BYTES` holds.
 
     One checkpoint holds the solve's loop state — the state ``(q, v)`` of ``n_state`` numbers
-    and what the solver and controller carry besides — counted as ``3 * n_state`` numbers (XLA
-    reports about 2.8 for a Panda RK4 solve and 1.9 for a 20-link chain). Never fewer than
+    and what the solver and controller carry besides — counted as ``3 * n_state`` numbers, a
+    margin for solvers that carry more than RK4 (XLA's temporaries of a 1000-step RK4 gradient,
+    one checkpoint a step, are about 1.2 numbers per state and checkpoint for the Panda arm and
+    1.1 for a 20-link chain: benchmarks/results/gradients_native*.md). Never fewer than
     ``ceil(log2(max_steps)) + 1`` (the O(n log n) recomputation bound of diffrax's default) and
     never more than ``max_steps`` (then no step is recomputed twice). Memory stays bounded
     whatever the horizon. (Counted as ``4 * n_state``, a 20-link chain got 819 checkpoints for
