@@ -486,34 +486,29 @@ static inline void vsincos(V x, V& s, V& c, int n) {
       V r = x - k * pio2_hi;  // contracted to a fused multiply-add
       r = r - k * pio2_lo;
       const V z = r * r;
+      V ps, pc;
       if constexpr (sizeof(T) == 4) {
         // Cephes' single-precision polynomials (sinf, cosf): three terms each suffice
-        V ps = V{} + T(-1.9515295891e-4f);
+        ps = V{} + T(-1.9515295891e-4f);
         ps = ps * z + T(8.3321608736e-3f);
         ps = ps * z + T(-1.6666654611e-1f);
-        V pc = V{} + T(2.443315711809948e-5f);
+        pc = V{} + T(2.443315711809948e-5f);
         pc = pc * z + T(-1.388731625493765e-3f);
         pc = pc * z + T(4.166664568298827e-2f);
-        const V sr = r + r * z * ps;
-        const V cr = T(1.0) - T(0.5) * z + z * z * pc;
-        const I swap = (quadrant & 1) != 0;
-        const V s0 = swap ? cr : sr, c0 = swap ? sr : cr;
-        s = ((quadrant & 2) != 0) ? -s0 : s0;
-        c = (((quadrant + 1) & 2) != 0) ? -c0 : c0;
-        return;
+      } else {
+        ps = V{} + T(1.58962301576546568060e-10);
+        ps = ps * z + T(-2.50507477628578072866e-8);
+        ps = ps * z + T(2.75573136213857245213e-6);
+        ps = ps * z + T(-1.98412698295895385996e-4);
+        ps = ps * z + T(8.33333333332211858878e-3);
+        ps = ps * z + T(-1.66666666666666307295e-1);
+        pc = V{} + T(-1.13585365213876817300e-11);
+        pc = pc * z + T(2.08757008419747316778e-9);
+        pc = pc * z + T(-2.75573141792967388112e-7);
+        pc = pc * z + T(2.48015872888517045348e-5);
+        pc = pc * z + T(-1.38888888888730564116e-3);
+        pc = pc * z + T(4.16666666666665929218e-2);
       }
-      V ps = V{} + T(1.58962301576546568060e-10);
-      ps = ps * z + T(-2.50507477628578072866e-8);
-      ps = ps * z + T(2.75573136213857245213e-6);
-      ps = ps * z + T(-1.98412698295895385996e-4);
-      ps = ps * z + T(8.33333333332211858878e-3);
-      ps = ps * z + T(-1.66666666666666307295e-1);
-      V pc = V{} + T(-1.13585365213876817300e-11);
-      pc = pc * z + T(2.08757008419747316778e-9);
-      pc = pc * z + T(-2.75573141792967388112e-7);
-      pc = pc * z + T(2.48015872888517045348e-5);
-      pc = pc * z + T(-1.38888888888730564116e-3);
-      pc = pc * z + T(4.16666666666665929218e-2);
       const V sr = r + r * z * ps;
       const V cr = T(1.0) - T(0.5) * z + z * z * pc;
       const I swap = (quadrant & 1) != 0;
