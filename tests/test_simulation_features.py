@@ -376,6 +376,9 @@ def test_batch_equals_loop_and_compiles_once():
         np.testing.assert_allclose(sol.q[i], one.q, atol=1e-13)
 
 
+# about a minute (three programs compiled in a subprocess): slow job; the default job shards
+# jb.vmap_chunked over two forced host devices (tests/test_batching.py)
+@pytest.mark.slow
 def test_sharded_batch_equals_unsharded_on_four_devices():
     code = textwrap.dedent("""
         import jax, jax.numpy as jnp, numpy as np
