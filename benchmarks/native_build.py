@@ -52,9 +52,9 @@ def main(argv=None):
                 warnings.simplefilter("ignore")
                 model = jb.from_mjcf(str(path))
             for mode in args.modes.split(","):
-                # the 256-bit-lane build (single states and small batches; batches of
-                # native.WIDE_BATCH and more get a second, 512-bit build where AVX-512 exists)
-                source = native._generate(model.tree, model.joints, False, np.float64, mode).replace("@WIDE@", "0")
+                # the batch build (the widest vector lanes; single states get a second,
+                # scalar build of the same source)
+                source = native._generate(model.tree, model.joints, False, np.float64, mode).replace("@ONE@", "0")
                 t = time.perf_counter()
                 native._build(source, f"probe_{mode}")
                 seconds = time.perf_counter() - t

@@ -437,15 +437,16 @@ _KERNEL = r"""
 #include <cmath>
 #include <type_traits>
 @COMMON@
-// states per block: one vector register of lanes. Two builds of each program: 256-bit lanes
-// for single states and small batches, and (where the processor has AVX-512) 512-bit lanes for
-// batches, about 1.4x (float64) and 1.6x (float32) the throughput of 256-bit lanes on an AMD
-// EPYC, whose 512-bit operations cost two 256-bit ones (so a single state is slower in them)
-#if defined(__AVX512F__) && @WIDE@
-constexpr int VECTOR_BYTES = 64;
+// states per block: one vector register of lanes. Two builds of each program: one state in
+// scalar code, for single states (a vector build would carry every value in a whole register,
+// and the long derivative programs spill most of them to the stack), and the widest vectors
+// the processor has (512-bit lanes with AVX-512, else 256-bit) for batches
+#if defined(__AVX512F__)
+constexpr int WIDEST_BYTES = 64;
 #else
-constexpr int VECTOR_BYTES = 32;
+constexpr int WIDEST_BYTES = 32;
 #endif
+constexpr int VECTOR_BYTES = @ONE@ ? int(sizeof(T)) : WIDEST_BYTES;
 constexpr int W = VECTOR_BYTES / sizeof(T);
 typedef T V __attribute__((vector_size(sizeof(T) * W)));
 typedef std::conditional<sizeof(T) == 8, int64_t, int32_t>::type IntT;
@@ -1038,21 +1039,20 @@ class _Kernel:
         self.widths = _widths(joints, mode)
         self.target = _handler(self.dtype)
         self.source = _generate(tree, joints, with_external, self.dtype, mode)
-        self._addresses = {}
-        self.address(False)  # built now: a build error shows where the kernel is first used
+        self._addresses = {}  # built on the first call (traced), where a build error then shows
         if mode in ("fd", "rk4", "energy"):
             self.batched = self._batched_call()
 
-    def address(self, wide: bool) -> int:
-        """The compiled program with 512-bit lanes (``wide``, where AVX-512 exists) or 256-bit
-        ones; each built on first use."""
-        if wide not in self._addresses:
+    def address(self, one: bool) -> int:
+        """The compiled program for one state in scalar code (``one``) or for a batch in the
+        widest vector lanes; each built on its first call."""
+        if one not in self._addresses:
             with _lock:
-                source = self.source.replace("@WIDE@", "1" if wide else "0")
-                lib = ctypes.cdll.LoadLibrary(str(_build(source, self.mode + ("_wide" if wide else ""))))
+                source = self.source.replace("@ONE@", "1" if one else "0")
+                lib = ctypes.cdll.LoadLibrary(str(_build(source, self.mode + ("_one" if one else "_wide"))))
                 _loaded.append(lib)
-                self._addresses[wide] = ctypes.cast(lib.jaxbody_range, ctypes.c_void_p).value
-        return self._addresses[wide]
+                self._addresses[one] = ctypes.cast(lib.jaxbody_range, ctypes.c_void_p).value
+        return self._addresses[one]
 
     def call(self, *args) -> list:
         """``args``: ``(B_i, n_i)`` arrays with ``B_i`` 1 or the batch size; returns ``(B, width)`` arrays."""
@@ -1060,8 +1060,8 @@ class _Kernel:
         out = [jax.ShapeDtypeStruct((batch, w), self.dtype) for w in self.widths]
         fn = jax.ffi.ffi_call(self.target, out, vmap_method="sequential")
         # every lane of a SIMD register is one state: the kernel gathers W states' inputs; the
-        # batch size is static here, so the lane width is chosen when the call is traced
-        address = self.address(batch >= WIDE_BATCH and _has_avx512())
+        # batch size is static here, so the build is chosen (and built) when the call is traced
+        address = self.address(batch == 1)
         return fn(*args, kernel=np.int64(address), threads=np.int64(threads()))
 
     def _batched_call(self):
@@ -1076,15 +1076,6 @@ class _Kernel:
             return tuple(o.reshape(axis_size, inner, o.shape[-1]) for o in outs), tuple(True for _ in outs)
 
         return batched
-
-
-#: Smallest batch a call runs with 512-bit lanes (where the processor has AVX-512).
-WIDE_BATCH = 16
-
-
-@functools.cache
-def _has_avx512() -> bool:
-    return " avx512f" in _cpu_signature()
 
 
 @functools.lru_cache(maxsize=256)

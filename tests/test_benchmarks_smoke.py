@@ -205,7 +205,7 @@ def test_native_build_smoke(tmp_path):
     assert "| chain2 | 2 | vjp |" in (tmp_path / "rec.md").read_text()
 
 
-@pytest.mark.slow  # builds the Panda arm's RK4 step in both lane widths
+@pytest.mark.slow  # builds the Panda arm's RK4 step for batches and for single states
 def test_step_kernel_smoke(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(REPO))
     env.setdefault("XLA_FLAGS", default_xla_flags())
@@ -222,6 +222,20 @@ def test_step_kernel_smoke(tmp_path):
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env, cwd=REPO)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
     assert "panda float32 B=16:" in p.stdout and "ns/state-step" in p.stdout
+
+
+@pytest.mark.slow  # builds a 2-link chain's RK4 step and its reverse-mode program twice (256-bit, scalar)
+def test_single_state_builds_smoke(tmp_path):
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env.setdefault("XLA_FLAGS", default_xla_flags())
+    cmd = [sys.executable, str(BENCH / "single_state_builds.py"), "--models", "chain2", "--pairs", "1", "--min-time", "0.01",
+           "--out", str(tmp_path), "--name", "rec"]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env, cwd=REPO)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    rec = json.loads((tmp_path / "rec.json").read_text())
+    assert [r["piece"] for r in rec["rows"]] == ["step", "step_vjp", "simulate", "gradient"]
+    assert all(r["us_256"] > 0 and r["us_scalar"] > 0 and len(r["pair_ratios"]) == 1 for r in rec["rows"])
+    assert "| chain2 | step_vjp |" in (tmp_path / "rec.md").read_text()
 
 
 def test_throughput_rerender_of_the_gpu_records(tmp_path):

@@ -307,6 +307,9 @@ q = np.asarray(m.qpos0) + 0.4 * rng.standard_normal((8, m.nq)); v = rng.standard
 f = jax.vmap(lambda q, v: kernels.acceleration(m, q, v, gravity=m.gravity, kernel='native'))
 a = f(jnp.asarray(q, jnp.float32), jnp.asarray(v, jnp.float32))
 assert a.dtype == jnp.float32 and bool(jnp.all(jnp.isfinite(a)))
+# a single state runs the scalar build, a batch the vector one: the same float32 operations
+one = jax.jit(lambda q, v: kernels.acceleration(m, q, v, gravity=m.gravity, kernel='native'))(jnp.asarray(q[3], jnp.float32), jnp.asarray(v[3], jnp.float32))
+assert one.dtype == jnp.float32 and float(jnp.max(jnp.abs(one - a[3]))) <= 1e-5 * float(jnp.max(jnp.abs(a[3]))), (one, a[3])
 print(' '.join(repr(float(x)) for x in np.ravel(a)))
 """
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
