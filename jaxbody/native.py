@@ -1046,13 +1046,13 @@ class _Kernel:
     def address(self, one: bool) -> int:
         """The compiled program for one state in scalar code (``one``) or for a batch in the
         widest vector lanes; each built on its first call."""
-        if one not in self._addresses:
-            with _lock:
+        with _lock:  # two threads tracing the same kernel build it once
+            if one not in self._addresses:
                 source = self.source.replace("@ONE@", "1" if one else "0")
                 lib = ctypes.cdll.LoadLibrary(str(_build(source, self.mode + ("_one" if one else "_wide"))))
                 _loaded.append(lib)
                 self._addresses[one] = ctypes.cast(lib.jaxbody_range, ctypes.c_void_p).value
-        return self._addresses[one]
+            return self._addresses[one]
 
     def call(self, *args) -> list:
         """``args``: ``(B_i, n_i)`` arrays with ``B_i`` 1 or the batch size; returns ``(B, width)`` arrays."""
