@@ -52,9 +52,10 @@ def main(argv=None):
                 warnings.simplefilter("ignore")
                 model = jb.from_mjcf(str(path))
             for mode in args.modes.split(","):
-                # the batch build (the widest vector lanes; single states get a second,
-                # scalar build of the same source)
-                source = native._generate(model.tree, model.joints, False, np.float64, mode).replace("@ONE@", "0")
+                # the 256-bit-lane build (small batches; single states and batches of
+                # native.WIDE_BATCH and more get other builds of the same source: native.BUILDS)
+                source = native._generate(model.tree, model.joints, False, np.float64, mode).replace(
+                    "@VECTOR_BYTES@", native.BUILDS["narrow"])
                 t = time.perf_counter()
                 native._build(source, f"probe_{mode}")
                 seconds = time.perf_counter() - t

@@ -47,7 +47,6 @@ def main(argv=None):
     set_default_xla_flags()  # before JAX starts: the CPU fusion flag on jaxlib 0.10
     rec = {"stamp": stamp(), "steps": STEPS, "rows": []}
 
-    import ctypes
     import pathlib
     import tempfile
     import warnings
@@ -64,17 +63,10 @@ def main(argv=None):
 
     from dynamics import model_path
 
-    scalar_address = native._Kernel.address
+    address = native._Kernel.address  # picks the scalar build for one state
 
-    def lanes_256(self, one):
-        # the same generated source with 256-bit lanes: how single states ran before
-        if "256" not in self._addresses:
-            source = self.source.replace("@ONE@ ? int(sizeof(T)) : WIDEST_BYTES", "32")
-            assert source != self.source, "the kernel template changed: update this benchmark"
-            lib = ctypes.cdll.LoadLibrary(str(native._build(source, self.mode + "_256")))
-            native._loaded.append(lib)
-            self._addresses["256"] = ctypes.cast(lib.jaxbody_range, ctypes.c_void_p).value
-        return self._addresses["256"]
+    def lanes_256(self, build):
+        return address(self, "narrow")  # 256-bit lanes: how single states ran before
 
     for name in args.models.split(","):
         with warnings.catch_warnings(), tempfile.TemporaryDirectory() as tmp:
@@ -114,7 +106,7 @@ def main(argv=None):
         try:
             before = compiled()
         finally:
-            native._Kernel.address = scalar_address
+            native._Kernel.address = address
         jax.clear_caches()
         now = compiled()
         for piece in PIECES:

@@ -437,16 +437,11 @@ _KERNEL = r"""
 #include <cmath>
 #include <type_traits>
 @COMMON@
-// states per block: one vector register of lanes. Two builds of each program: one state in
-// scalar code, for single states (a vector build would carry every value in a whole register,
-// and the long derivative programs spill most of them to the stack), and the widest vectors
-// the processor has (512-bit lanes with AVX-512, else 256-bit) for batches
-#if defined(__AVX512F__)
-constexpr int WIDEST_BYTES = 64;
-#else
-constexpr int WIDEST_BYTES = 32;
-#endif
-constexpr int VECTOR_BYTES = @ONE@ ? int(sizeof(T)) : WIDEST_BYTES;
+// states per block: one vector register of lanes, VECTOR_BYTES wide (jaxbody.native.BUILDS):
+// scalar code for a single state (a vector build would carry every value in a whole register,
+// and the long derivative programs keep most of them on the stack), 256-bit lanes for small
+// batches, 512-bit lanes (with AVX-512) for larger ones
+constexpr int VECTOR_BYTES = @VECTOR_BYTES@;
 constexpr int W = VECTOR_BYTES / sizeof(T);
 typedef T V __attribute__((vector_size(sizeof(T) * W)));
 typedef std::conditional<sizeof(T) == 8, int64_t, int32_t>::type IntT;
@@ -1043,16 +1038,15 @@ class _Kernel:
         if mode in ("fd", "rk4", "energy"):
             self.batched = self._batched_call()
 
-    def address(self, one: bool) -> int:
-        """The compiled program for one state in scalar code (``one``) or for a batch in the
-        widest vector lanes; each built on its first call."""
+    def address(self, build: str) -> int:
+        """The compiled program of one of :data:`BUILDS`, built on its first call."""
         with _lock:  # two threads tracing the same kernel build it once
-            if one not in self._addresses:
-                source = self.source.replace("@ONE@", "1" if one else "0")
-                lib = ctypes.cdll.LoadLibrary(str(_build(source, self.mode + ("_one" if one else "_wide"))))
+            if build not in self._addresses:
+                source = self.source.replace("@VECTOR_BYTES@", BUILDS[build])
+                lib = ctypes.cdll.LoadLibrary(str(_build(source, f"{self.mode}_{build}")))
                 _loaded.append(lib)
-                self._addresses[one] = ctypes.cast(lib.jaxbody_range, ctypes.c_void_p).value
-            return self._addresses[one]
+                self._addresses[build] = ctypes.cast(lib.jaxbody_range, ctypes.c_void_p).value
+            return self._addresses[build]
 
     def call(self, *args) -> list:
         """``args``: ``(B_i, n_i)`` arrays with ``B_i`` 1 or the batch size; returns ``(B, width)`` arrays."""
@@ -1061,7 +1055,7 @@ class _Kernel:
         fn = jax.ffi.ffi_call(self.target, out, vmap_method="sequential")
         # every lane of a SIMD register is one state: the kernel gathers W states' inputs; the
         # batch size is static here, so the build is chosen (and built) when the call is traced
-        address = self.address(batch == 1)
+        address = self.address(build_for(batch))
         return fn(*args, kernel=np.int64(address), threads=np.int64(threads()))
 
     def _batched_call(self):
@@ -1076,6 +1070,30 @@ class _Kernel:
             return tuple(o.reshape(axis_size, inner, o.shape[-1]) for o in outs), tuple(True for _ in outs)
 
         return batched
+
+
+#: The builds of every program, by the bytes of one block of states (:func:`build_for`):
+#: ``"one"`` scalar code for a single state; ``"narrow"`` 256-bit lanes (4 float64 or 8 float32
+#: states) for batches below :data:`WIDE_BATCH`, and for all batches without AVX-512; ``"wide"``
+#: 512-bit lanes (8 or 16 states) for larger batches where the processor has AVX-512. On an AMD
+#: EPYC, whose 512-bit operations cost two 256-bit ones, a batch runs about 1.4x (float64) and
+#: 1.6x (float32) faster in 512-bit lanes, but a few states would fill only part of them.
+BUILDS = {"one": "int(sizeof(T))", "narrow": "32", "wide": "64"}
+
+#: Smallest batch a call runs in 512-bit lanes (where the processor has AVX-512).
+WIDE_BATCH = 16
+
+
+def build_for(batch: int) -> str:
+    """Which of :data:`BUILDS` a call over ``batch`` states runs."""
+    if batch == 1:
+        return "one"
+    return "wide" if batch >= WIDE_BATCH and _has_avx512() else "narrow"
+
+
+@functools.cache
+def _has_avx512() -> bool:
+    return " avx512f" in _cpu_signature()
 
 
 @functools.lru_cache(maxsize=256)
