@@ -38,6 +38,7 @@ import json
 import math
 import os
 import pathlib
+import statistics
 import sys
 import tempfile
 import time
@@ -174,6 +175,79 @@ def _jax_setup(x64):
     return jax
 
 
+def _batched(jax, jb, rollout, batch, cfg):
+    """``(function, description)``: ``rollout`` over a batch of states, as the jaxbody workers
+    run it (``jax.vmap``, or ``jb.vmap_chunked`` above ``--chunk``, split over ``--devices``)."""
+    axes = (None, 0, 0, None)
+    ndev = cfg["devices"]
+    if cfg["chunk"] and batch > cfg["chunk"]:
+        devs = ndev if ndev > 1 and batch % ndev == 0 and batch >= ndev * cfg["chunk"] else None
+        return jb.vmap_chunked(rollout, cfg["chunk"], in_axes=axes, devices=devs), \
+            f"jb.vmap_chunked(chunk={cfg['chunk']}, devices={devs})"
+    return jax.vmap(rollout, in_axes=axes), "jax.vmap"
+
+
+def _simulate_rollout(jb, diffrax, cfg):
+    """The timed rollout: ``jb.simulate`` RK4 to ``t1``, final state and steps taken."""
+
+    def rollout(model, q0, v0, t1):
+        system = jb.scene(model, kernel=cfg["kernel"]) if cfg.get("kernel") else model
+        sol = jb.simulate(system, q0, v0, t1, solver="rk4", dt0=DT, saveat=diffrax.SaveAt(t1=True),
+                          max_steps=cfg["max_steps"])
+        return sol.q[-1], sol.v[-1], sol.stats["num_steps"]
+
+    return rollout
+
+
+def worker_pairs(cfg, rec):
+    """T5 in pairs: float64 and float32 rollouts of the same batch in one process
+    (``jax_enable_x64`` on, a float32 model and float32 states for the float32 one), timed
+    one after the other ``cfg["pairs"]`` times. A virtual machine's speed drifts between
+    worker processes by more than the margin T5 asks about; a pair shares the drift."""
+    import warnings
+
+    import diffrax
+    import numpy as np
+
+    jax = _jax_setup(True)
+    import jax.numpy as jnp
+
+    import jaxbody as jb
+
+    m = _rigid_rk4(cfg["path"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        models = {d: jb.from_mujoco(m, dtype=d) for d in (jnp.float64, jnp.float32)}
+    rollout = _simulate_rollout(jb, diffrax, cfg)
+    rep = dict(min_time=cfg["min_time"], repeats=cfg["repeats"])
+    rows = rec.data["batches"] = {}
+    for batch in cfg["batches"]:
+        nstep = n_steps(batch, cfg)
+        q, v, _, _ = _states(m, batch, cfg["seed"])
+        calls = {}
+        row = rows[str(batch)] = {"steps_requested": nstep, "pairs": []}
+        for dtype, model in models.items():
+            name = jnp.dtype(dtype).name
+            args = (model, jnp.asarray(q, dtype), jnp.asarray(v, dtype), jnp.asarray(nstep * DT, dtype))
+            fn, row["path"] = _batched(jax, jb, rollout, batch, cfg)
+            jitted, _, out, t = _compile(jax, fn, args)
+            row[f"compile_{name}"] = t
+            row[f"steps_{name}"] = steps = int(np.max(np.asarray(out[2])))
+            row[f"finite_{name}"] = bool(np.isfinite(np.asarray(out[0])).all() and np.isfinite(np.asarray(out[1])).all())
+            row[f"kernel_{name}"] = jb.kernels.resolve_kernel(model, cfg.get("kernel"))
+            calls[name] = (lambda f=jitted, a=args: jax.block_until_ready(f(*a))), steps
+        rec.save()
+        for _ in range(cfg["pairs"]):
+            pair = {}
+            for name, (call, steps) in calls.items():
+                pair[name] = batch * steps / _common.time_per_call(call, warmup=False, **rep)["median_s"]
+            pair["ratio"] = pair["float32"] / pair["float64"]
+            row["pairs"].append(pair)
+            rec.save()
+        row["median_ratio"] = float(np.median([p["ratio"] for p in row["pairs"]]))
+        rec.save()
+
+
 def worker_jaxbody(cfg, rec):
     """``jb.simulate`` RK4 rollouts, jitted and batched, in one precision."""
     import warnings
@@ -198,12 +272,7 @@ def worker_jaxbody(cfg, rec):
                     device_kind=jax.devices()[0].device_kind, backend=jax.default_backend(),
                     kernel=jb.kernels.resolve_kernel(model, cfg.get("kernel")))
     rep = dict(min_time=cfg["min_time"], repeats=cfg["repeats"])
-
-    def rollout(model, q0, v0, t1):
-        system = jb.scene(model, kernel=cfg["kernel"]) if cfg.get("kernel") else model
-        sol = jb.simulate(system, q0, v0, t1, solver="rk4", dt0=DT, saveat=diffrax.SaveAt(t1=True),
-                          max_steps=cfg["max_steps"])
-        return sol.q[-1], sol.v[-1], sol.stats["num_steps"]
+    rollout = _simulate_rollout(jb, diffrax, cfg)
 
     def arrays(batch, seed):
         q, v, _, _ = _states(m, batch, seed)
@@ -226,7 +295,6 @@ def worker_jaxbody(cfg, rec):
         rec.save()
 
     rows = rec.data["batches"] = {}
-    ndev = cfg["devices"]
     for batch in cfg["batches"]:
         nstep = n_steps(batch, cfg)
         row = rows[str(batch)] = {"steps_requested": nstep}
@@ -234,14 +302,7 @@ def worker_jaxbody(cfg, rec):
         rec.save()
         q, v = arrays(batch, cfg["seed"])
         tb = jnp.asarray(nstep * DT, dtype)
-        axes = (None, 0, 0, None)
-        if cfg["chunk"] and batch > cfg["chunk"]:
-            devs = ndev if ndev > 1 and batch % ndev == 0 and batch >= ndev * cfg["chunk"] else None
-            fn = jb.vmap_chunked(rollout, cfg["chunk"], in_axes=axes, devices=devs)
-            row["path"] = f"jb.vmap_chunked(chunk={cfg['chunk']}, devices={devs})"
-        else:
-            fn = jax.vmap(rollout, in_axes=axes)
-            row["path"] = "jax.vmap"
+        fn, row["path"] = _batched(jax, jb, rollout, batch, cfg)
         try:
             jitted, compiled, out, t = _compile(jax, fn, (model, q, v, tb))
         except Exception as e:  # noqa: BLE001 - recorded, the next batch still runs
@@ -481,7 +542,18 @@ def compute_targets(results):
     rows = [(m, b, steps_per_s(results, m, b, "jb32"), steps_per_s(results, m, b, "jb64"))
             for m in results["runs"] for b in big]
     ok_rows = [(m, b, x / y) for m, b, x, y in rows if x and y]
-    if ok_rows:
+    paired = [(m, b, _get(results["runs"], m, "pairs", "batches", str(b), "median_ratio"))
+              for m in results["runs"] for b in big if results.get("t5_pairs")]
+    if paired:
+        ok = [(m, b, r) for m, b, r in paired if r]
+        sep = {(m, b): r for m, b, r in ok_rows}
+        T.append(dict(id="T5", target=f"float32 throughput >= 1.8x float64 (B >= 1024; median of {results['t5_pairs']} "
+                                      "interleaved pairs in one process)",
+                      verdict="MET" if ok and len(ok) == len(paired) and all(r >= 1.8 for *_, r in ok) else "NOT MET",
+                      detail="; ".join(f"{m} B={b}: {r:.3g}x" + (f" (separate workers {sep[m, b]:.3g}x)" if (m, b) in sep else "")
+                                       for m, b, r in ok) + ("; failed: " + ", ".join(f"{m} B={b}" for m, b, r in paired if not r)
+                                                             if len(ok) < len(paired) else "")))
+    elif ok_rows:
         T.append(dict(id="T5", target="float32 throughput >= 1.8x float64 (B >= 1024)",
                       verdict="MET" if all(r >= 1.8 for *_, r in ok_rows) and len(ok_rows) == len(rows) else "NOT MET",
                       detail="; ".join(f"{m} B={b}: {r:.3g}x" for m, b, r in ok_rows)))
@@ -605,6 +677,23 @@ def _finish_markdown(results, path, L):
         L += [_common.markdown_table(["model", "RK4 f32 vs f64", "RK4 f64 vs MuJoCo RK4", "RK4 f64 vs tsit5 1e-10",
                                       *(f"tsit5 f32 tol {tol:g}" for tol in TSIT5_TOLS)], rows), ""]
 
+    pair_rows = []
+    for m, r in results["runs"].items():
+        for b, row in sorted(((int(b), x) for b, x in (_get(r, "pairs", "batches") or {}).items())):
+            pairs = row.get("pairs") or []
+            if pairs:
+                pair_rows.append([m, b, row.get("steps_float64"), _si(statistics.median(p["float64"] for p in pairs)),
+                                  _si(statistics.median(p["float32"] for p in pairs)),
+                                  " ".join(f"{p['ratio']:.2f}" for p in pairs), f"{row['median_ratio']:.3g}"])
+    if pair_rows:
+        L += ["## float32 against float64 in pairs (T5)", "",
+              "One process (`jax_enable_x64` on; a float32 model and float32 states for the float32 rollouts) "
+              "compiles both rollouts of a batch, then times float64 and float32 one after the other, "
+              f"{results['t5_pairs']} times (`--t5-pairs`): the drift of a virtual machine's speed between "
+              "the separate workers above moves their ratio by more than T5's margin. System-steps/s are "
+              "medians over the pairs.", "",
+              _common.markdown_table(["model", "batch", "steps", "float64 /s", "float32 /s", "pair ratios f32/f64", "median"],
+                                     pair_rows), ""]
     L += ["## Targets (issue 7)", "", _common.markdown_table(
         ["id", "target", "verdict", "measured"], [[t["id"], t["target"], t["verdict"], t["detail"]] for t in results["targets"]]), ""]
     fails = []
@@ -705,6 +794,9 @@ def parse_args(argv=None):
                    help="CPU devices jb.vmap_chunked splits big batches over (sets "
                         "--xla_force_host_platform_device_count for the jaxbody workers; default: cores)")
     p.add_argument("--threads", type=int, default=_common.core_count(), help="MuJoCo 'all cores' thread count")
+    p.add_argument("--t5-pairs", type=int, default=0,
+                   help="also time float64 and float32 one after the other in one process, this many pairs per "
+                        "model and batch >= 1024 (T5 then reads the median pair ratio; default 0: separate workers only)")
     p.add_argument("--no-accuracy", action="store_true", help="skip the float32/float64 accuracy runs")
     p.add_argument("--accuracy-models", default="panda,chain20", help="models of the accuracy runs")
     p.add_argument("--accuracy-states", type=int, default=4)
@@ -720,7 +812,7 @@ def parse_args(argv=None):
     p.add_argument("--rerender", type=pathlib.Path,
                    help="re-analyse a record's JSON (e.g. one made on another machine) and rewrite its md/png "
                         "(and JSON) under --out/--name; nothing is measured, the stamp is kept")
-    p.add_argument("--worker", choices=("mujoco", "jaxbody", "mjx"), help=argparse.SUPPRESS)
+    p.add_argument("--worker", choices=("mujoco", "jaxbody", "mjx", "pairs"), help=argparse.SUPPRESS)
     p.add_argument("--config", help=argparse.SUPPRESS)
     p.add_argument("--result", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
@@ -744,7 +836,8 @@ def main(argv=None):
     args = parse_args(argv)
     if args.worker:
         rec = _Record(args.result)
-        {"mujoco": worker_mujoco, "jaxbody": worker_jaxbody, "mjx": worker_mjx}[args.worker](json.loads(args.config), rec)
+        workers = {"mujoco": worker_mujoco, "jaxbody": worker_jaxbody, "mjx": worker_mjx, "pairs": worker_pairs}
+        workers[args.worker](json.loads(args.config), rec)
         return 0
     if args.rerender:
         results = json.loads(args.rerender.read_text())
@@ -772,6 +865,7 @@ def main(argv=None):
                "kernel": args.kernel,
                "steps": args.steps, "max_work": args.max_work, "single_steps": args.single_steps, "dt": DT,
                "accuracy_states": args.accuracy_states, "skip": sorted(map(list, args.skip)), "note": args.note,
+               "t5_pairs": args.t5_pairs,
                "runs": {}}
     t_start = time.perf_counter()
     me = str(pathlib.Path(__file__).resolve())
@@ -819,6 +913,11 @@ def main(argv=None):
                         if r["status"] == "timeout":
                             break  # a bigger batch will not compile faster
                 write_records(results, args, t_start)  # after each worker: a run cut short keeps what it has
+            big = [b for b in batches if b >= 1024]
+            if args.t5_pairs and big:
+                r = runs["pairs"] = go("pairs", dict(base, batches=big, pairs=args.t5_pairs), args.timeout, env_jb, "pairs")
+                log(f"{model} float32/float64 pairs ({r['status']}): " + ", ".join(
+                    f"B={b} median {_get(r, 'batches', str(b), 'median_ratio') or float('nan'):.3g}x" for b in big))
             write_records(results, args, t_start)
 
     md, js, png, plotted = write_records(results, args, t_start)

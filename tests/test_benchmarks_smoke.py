@@ -99,6 +99,23 @@ def test_throughput_and_gradients_full_smoke(tmp_path):
     assert "interleaved pairs" in next(t["detail"] for t in rec["targets"] if t["id"] == "T3")
 
 
+@pytest.mark.slow  # about 20 s
+def test_throughput_t5_pairs_smoke(tmp_path):
+    # --t5-pairs: float64 and float32 compiled in one process and timed one after the other
+    rec, md = _run("throughput.py", tmp_path / "t", "--impls", "jb64,jb32", "--no-accuracy", "--single-steps", "0",
+                   "--models", "chain2", "--batches", "1024", "--steps", "10", "--kernel", "auto", "--t5-pairs", "2")
+    w = rec["runs"]["chain2"]["pairs"]
+    assert w["status"] == "ok", w.get("stderr_tail")
+    row = w["batches"]["1024"]
+    assert row["steps_float64"] == row["steps_float32"] == 10 and row["finite_float64"] and row["finite_float32"]
+    assert len(row["pairs"]) == 2 and all(p["float64"] > 0 and p["float32"] > 0 for p in row["pairs"])
+    assert all(p["ratio"] == pytest.approx(p["float32"] / p["float64"]) for p in row["pairs"])
+    assert min(p["ratio"] for p in row["pairs"]) <= row["median_ratio"] <= max(p["ratio"] for p in row["pairs"])
+    t5 = next(t for t in rec["targets"] if t["id"] == "T5" and "throughput" in t["target"])
+    assert "interleaved pairs" in t5["target"] and "separate workers" in t5["detail"]
+    assert "## float32 against float64 in pairs (T5)" in md and "| chain2 | 1024 | 10 |" in md
+
+
 @pytest.mark.slow  # about 35 s: compiles the unrolled kernel; throughput.py's smoke test stays in the default suite
 def test_kernels_benchmark_smoke(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(REPO))
