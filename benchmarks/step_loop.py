@@ -1,6 +1,7 @@
 """Time a jitted loop of the generated RK4 step over a batch, alone, for a profiler.
 
-``jaxbody.native.rk4_step`` of the Panda arm (or another shipped robot) over ``--batch``
+``jaxbody.native.rk4_step`` of the Panda arm (or another shipped robot, or a chain of N hinge
+links, ``--model chainN``) over ``--batch``
 states, 50 steps per call in a ``lax.fori_loop``, called for ``--seconds``; prints nanoseconds
 per state and step. Nothing else runs in the loop, so a sampling profiler sees the generated
 program, its sine and cosine, the thread pool and XLA's call around it::
@@ -14,17 +15,20 @@ program, its sine and cosine, the thread pool and XLA's call around it::
 
 import argparse
 import os
+import pathlib
 import sys
+import tempfile
 import time
 import warnings
 
 sys.path.insert(0, os.path.dirname(__file__))
 from _common import set_default_xla_flags  # noqa: E402
+from dynamics import model_path  # noqa: E402
 
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--model", default="panda", help="a robot shipped in jaxbody/models")
+    p.add_argument("--model", default="panda", help="a robot shipped in jaxbody/models, or chainN (N hinge links)")
     p.add_argument("--dtype", choices=("float64", "float32"), default="float64")
     p.add_argument("--batch", type=int, default=1024)
     p.add_argument("--seconds", type=float, default=3.0)
@@ -41,10 +45,13 @@ def main(argv=None):
     from jaxbody import native
 
     dtype = jnp.dtype(args.dtype)
-    path = os.path.join(os.path.dirname(jb.__file__), "models", f"{args.model}.xml")
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), tempfile.TemporaryDirectory() as tmp:
         warnings.simplefilter("ignore")
-        model = jb.from_mjcf(path, dtype=dtype)
+        shipped = pathlib.Path(jb.__file__).parent / "models"
+        path = shipped / f"{args.model}.xml"
+        if not path.exists():
+            path = model_path(args.model, shipped, pathlib.Path(tmp))
+        model = jb.from_mjcf(str(path), dtype=dtype)
     rng = np.random.default_rng(0)
     q = jax.vmap(lambda x: jb.normalize_qpos(model, x))(
         jnp.asarray(np.asarray(model.qpos0) + 0.1 * rng.standard_normal((args.batch, model.nq)), dtype))
