@@ -239,6 +239,10 @@ def test_step_kernel_smoke(tmp_path):
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env, cwd=REPO)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
     assert "panda float32 B=16:" in p.stdout and "ns/state-step" in p.stdout
+    cmd[2:2] = ["--model", "chain2"]  # a generated hinge chain
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env, cwd=REPO)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    assert "chain2 float32 B=16:" in p.stdout
 
 
 @pytest.mark.slow  # builds a 2-link chain's RK4 step and its reverse-mode program twice (256-bit, scalar)
