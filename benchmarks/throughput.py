@@ -542,8 +542,9 @@ def compute_targets(results):
     rows = [(m, b, steps_per_s(results, m, b, "jb32"), steps_per_s(results, m, b, "jb64"))
             for m in results["runs"] for b in big]
     ok_rows = [(m, b, x / y) for m, b, x, y in rows if x and y]
+    skipped = {(m, b) for m, b in results.get("skip", [])}
     paired = [(m, b, _get(results["runs"], m, "pairs", "batches", str(b), "median_ratio"))
-              for m in results["runs"] for b in big if results.get("t5_pairs")]
+              for m in results["runs"] for b in big if results.get("t5_pairs") and (m, b) not in skipped]
     if paired:
         ok = [(m, b, r) for m, b, r in paired if r]
         sep = {(m, b): r for m, b, r in ok_rows}
