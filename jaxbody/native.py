@@ -94,6 +94,10 @@ class _Emitter:
         self.lines: list[str] = []
         self.memo: dict[str, "_Sym"] = {}
         self.ops: list[tuple] = []
+        # value name -> (group, index) of the outputs of a hand-differentiated block
+        # (:func:`_inverse_dynamics_block`): the reverse pass emits the block's adjoint rule
+        # instead of reversing the operations inside it
+        self.blocks: dict[str, tuple[dict, int]] = {}
 
     def emit(self, expr: str, kind: str = "", args: tuple = ()) -> "_Sym":
         sym = self.memo.get(expr)
@@ -743,6 +747,8 @@ def _tangent_program(ops: list, seeds: dict) -> dict:
             continue
         elif kind == "sqrt":
             t = ds[0] * 0.5 / out
+        elif kind == "block":
+            t = ds[0]
         elif kind == "atan2":
             y, x = args
             t = (x * ds[0] - y * ds[1]) / (x * x + y * y)
@@ -755,10 +761,34 @@ def _tangent_program(ops: list, seeds: dict) -> dict:
     return tan
 
 
+def _inverse_dynamics_block(em: _Emitter, model, q: list, v: list, acceleration: list, gravity, tau: list) -> list:
+    """``tau`` (inverse dynamics at ``(q, v, acceleration)``, ``acceleration`` held) as the outputs
+    of one block whose reverse-mode rule is the hand-derived :func:`jaxbody.unrolled._inverse_dynamics_vjp`
+    (trees of hinges and slides, no body loads), not the reverse of the Newton–Euler operations."""
+    group: dict = {"cts": [0.0] * len(tau)}
+
+    def rule(lam):
+        q_bar, v_bar = unrolled._inverse_dynamics_vjp(model, q, v, acceleration, gravity, lam)
+        return list(zip(q, q_bar)) + list(zip(v, v_bar))
+
+    group["rule"] = rule
+    out = []
+    for i, t in enumerate(tau):
+        if not isinstance(t, _Sym):
+            out.append(t)
+            continue
+        sym = em.emit(f"{t.name} /* inverse dynamics */", "block", (t,))
+        em.blocks[sym.name] = (group, i)
+        out.append(sym)
+    return out
+
+
 def _adjoint_program(ops: list, active: set, seeds: list) -> dict:
     """Reverse mode: the adjoint of every active value, emitted as code, last operation first.
 
-    ``seeds``: ``(value, cotangent)`` pairs; returns value name -> adjoint.
+    ``seeds``: ``(value, cotangent)`` pairs; returns value name -> adjoint. The outputs of a
+    hand-differentiated block (:func:`_inverse_dynamics_block`) collect their adjoints; at the
+    block's first output (the last one reached) its rule emits the adjoints of its inputs.
     """
     adj: dict = {}
 
@@ -775,6 +805,13 @@ def _adjoint_program(ops: list, active: set, seeds: list) -> dict:
             s, c = out
             gs, gc = adj.get(s.name, 0.0), adj.get(c.name, 0.0)
             acc(args[0], gs * c - gc * s)
+            continue
+        if kind == "block":
+            group, i = out.em.blocks[out.name]
+            group["cts"][i] = adj.get(out.name, 0.0)
+            if i == 0 and not all(_is_zero(x) for x in group["cts"]):
+                for value, g in group["rule"](group["cts"]):
+                    acc(value, g)
             continue
         g = adj.get(out.name)
         if g is None:
@@ -858,6 +895,8 @@ def _generate(tree, joints, with_external: bool, dtype, mode: str = "fd") -> str
         L0 = {k: _stop(x) for k, x in L.items()}
         inv_d0 = [_stop(x) for x in inv_d]
         tau = unrolled._inverse_dynamics(model, q, v, a0, g, ext)
+        if ext is None and unrolled.adjoint_applies(joints):
+            tau = _inverse_dynamics_block(em, model, q, v, a0, g, tau)
         correction = unrolled._ltdl_substitute(L0, inv_d0, lam, [fi - t for fi, t in zip(f, tau)])
         return [x + c for x, c in zip(a0, correction)]
 
