@@ -32,7 +32,10 @@ How it plugs into JAX:
   ``a₀`` the computed acceleration and ``M = LᵀDL`` its factor held constant, it reverses
   ``a₀ + M⁻¹ (τ − ID(q, v, a₀))`` (``ID``: inverse dynamics by the Newton–Euler passes), whose
   derivative is that of ``a``, so its reverse sweep goes through the Newton–Euler passes once
-  and one solve with the factor, not through the composite inertias and the factorisation. A :func:`jax.custom_jvp` rule takes the value from the native call and the
+  and one solve with the factor, not through the composite inertias and the factorisation.
+  For trees of hinges and slides without body loads, the adjoint of those passes is emitted
+  in closed form (:func:`jaxbody.unrolled._inverse_dynamics_vjp`, about half the operations
+  of their operation-by-operation reverse). A :func:`jax.custom_jvp` rule takes the value from the native call and the
   tangent along the state and force from a primitive that is linear in the tangents, runs
   the forward-mode program, and transposes to the reverse-mode one (so ``jvp``/``jacfwd``
   and ``grad``/``vjp``/``jacrev``, under ``vmap`` too, are native calls). Tangents of the
