@@ -1153,12 +1153,13 @@ class _Kernel:
 
 
 #: The builds of every program, by the bytes of one block of states (:func:`build_for`):
-#: ``"one"`` scalar code for a single state; ``"narrow"`` 256-bit lanes (4 float64 or 8 float32
-#: states) for batches below :data:`WIDE_BATCH`, and for all batches without AVX-512; ``"wide"``
-#: 512-bit lanes (8 or 16 states) for larger batches where the processor has AVX-512. On an AMD
+#: ``"one"`` (``0``: one scalar) scalar code for a single state; ``"narrow"`` 256-bit lanes (4
+#: float64 or 8 float32 states) for batches below :data:`WIDE_BATCH`, and for all batches without
+#: AVX-512; ``"wide"`` 512-bit lanes (8 or 16 states) for larger batches where the processor has
+#: AVX-512, which read the states with gather and write the results with scatter instructions. On an AMD
 #: EPYC, whose 512-bit operations cost two 256-bit ones, a batch runs about 1.4x (float64) and
 #: 1.6x (float32) faster in 512-bit lanes, but a few states would fill only part of them.
-BUILDS = {"one": "0", "narrow": "32", "wide": "64"}  # 0: one scalar (T) a block
+BUILDS = {"one": "0", "narrow": "32", "wide": "64"}
 
 #: Smallest batch a call runs in 512-bit lanes (where the processor has AVX-512).
 WIDE_BATCH = 16
