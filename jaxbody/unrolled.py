@@ -389,12 +389,14 @@ def _dof_owners(model):
     return out
 
 
-def _motions(model, S, v, gravity, want_acceleration=True, acceleration=None):
+def _motions(model, S, v, gravity, want_acceleration=True, acceleration=None, per_dof=None):
     """Body velocities ``V_k`` and bias accelerations ``A_k`` (root: ``(0, −g)``), root to leaves.
 
     ``want_acceleration=False``: the velocities alone (``A`` is ``None``). ``acceleration``
     (per DoF): the body accelerations of these joint accelerations, ``A_k + Σ S_d a_d`` over
-    the DoFs from the root to ``k`` (inverse dynamics); default zero.
+    the DoFs from the root to ``k`` (inverse dynamics); default zero. ``per_dof``: a dict that
+    receives, per DoF, ``"V-"`` the velocity just before it and ``"A+"`` the acceleration just
+    after it (lists over the DoFs).
     """
     joints = model.joints
     nb = model.n_body
@@ -404,6 +406,8 @@ def _motions(model, S, v, gravity, want_acceleration=True, acceleration=None):
     A_ground = (ZERO3, ZERO3 if gravity is None else tuple(-gi for gi in gravity))
     V: list = [None] * nb
     A: list = [None] * nb
+    if per_dof is not None:
+        per_dof["V-"], per_dof["A+"] = [None] * model.nv, [None] * model.nv
     for b in range(nb):
         p = parent[b]
         Vb = (ZERO3, ZERO3) if p < 0 else V[p]
@@ -418,12 +422,16 @@ def _motions(model, S, v, gravity, want_acceleration=True, acceleration=None):
                 Vbefore = Vb
                 for d in group:
                     Sd = S[d]
+                    if per_dof is not None:
+                        per_dof["V-"][d] = Vb
                     if want_acceleration and not (_is_zero3(Vbefore[0]) and _is_zero3(Vbefore[1])):
                         Sdot = _motion_cross(Vbefore, Sd)
                         Ab = (_vadd(Ab[0], _vscale(v[d], Sdot[0])), _vadd(Ab[1], _vscale(v[d], Sdot[1])))
                     if want_acceleration and acceleration is not None:
                         Ab = (_vadd(Ab[0], _vscale(acceleration[d], Sd[0])), _vadd(Ab[1], _vscale(acceleration[d], Sd[1])))
                     Vb = (_vadd(Vb[0], _vscale(v[d], Sd[0])), _vadd(Vb[1], _vscale(v[d], Sd[1])))
+                    if per_dof is not None:
+                        per_dof["A+"][d] = Ab
         V[b], A[b] = Vb, Ab
     return V, (A if want_acceleration else None)
 
@@ -460,6 +468,14 @@ def energies(
     return tuple(jnp.asarray(e, dtype) for e in _energies(model, q_s, v_s, g))
 
 
+def _body_force(inertia, V, A) -> tuple:
+    """The Newton–Euler force ``f = 𝕀 A + V ×* 𝕀 V`` of one body and its momentum ``𝕀 V``."""
+    IA = _inertia_apply(inertia, A)
+    P = _inertia_apply(inertia, V)
+    VxP = _force_cross(V, P)
+    return (_vadd(IA[0], VxP[0]), _vadd(IA[1], VxP[1])), P
+
+
 def _joint_forces(model, S, inertia, com, c0, V, A, external) -> list:
     """``τ_d = S_d · Σ_{k ⪰ body(d)} (𝕀_k A_k + V_k ×* 𝕀_k V_k − f_k^ext)``: the Newton–Euler
     body forces, summed leaves to root and projected on each DoF's axis."""
@@ -467,10 +483,7 @@ def _joint_forces(model, S, inertia, com, c0, V, A, external) -> list:
     parent = model.tree.parent
     F: list = [None] * nb
     for b in range(nb):
-        IA = _inertia_apply(inertia[b], A[b])
-        IV = _inertia_apply(inertia[b], V[b])
-        VxIV = _force_cross(V[b], IV)
-        L, p_ = _vadd(IA[0], VxIV[0]), _vadd(IA[1], VxIV[1])
+        (L, p_), _ = _body_force(inertia[b], V[b], A[b])
         if external is not None:
             f = external[b][:3]
             t = external[b][3:]
@@ -538,63 +551,39 @@ def _inverse_dynamics_vjp(model, q, v, acceleration, gravity, lam) -> tuple[list
     Returns ``(q̄, v̄)``: lists over ``nq`` and ``nv``.
     """
     joints = model.joints
-    nb, nv = model.n_body, model.nv
     parent = model.tree.parent
-    body_joints, _ = _structure(model)
     R, x, c0, S = _kinematics(model, q)
     inertia, _ = _body_inertias(model, R, x, c0)
-    zero = (ZERO3, ZERO3)
-    A_ground = (ZERO3, ZERO3 if gravity is None else tuple(-gi for gi in gravity))
-    V: list = [None] * nb
-    A: list = [None] * nb
-    Lam: list = [None] * nb
-    v_before: list = [None] * nv
-    lam_before: list = [None] * nv
-    a_after: list = [None] * nv
-    for b in range(nb):  # root to leaves, the same operations as _motions (shared by the emitter)
-        p = parent[b]
-        Vb = zero if p < 0 else V[p]
-        Ab = A_ground if p < 0 else A[p]
-        Lb = zero if p < 0 else Lam[p]
-        for j in body_joints[b]:
-            d = joints.dofadr[j]
-            Sd = S[d]
-            v_before[d], lam_before[d] = Vb, Lb
-            if not (_is_zero3(Vb[0]) and _is_zero3(Vb[1])):
-                Ab = _spatial_add(Ab, _spatial_scale(v[d], _motion_cross(Vb, Sd)))
-            Ab = _spatial_add(Ab, _spatial_scale(acceleration[d], Sd))
-            Vb = _spatial_add(Vb, _spatial_scale(v[d], Sd))
-            Lb = _spatial_add(Lb, _spatial_scale(lam[d], Sd))
-            a_after[d] = Ab
-        V[b], A[b], Lam[b] = Vb, Ab, Lb
-    F: list = [None] * nb
-    G: list = [None] * nb
-    Y: list = [None] * nb
-    for b in range(nb):
-        IA = _inertia_apply(inertia[b], A[b])
-        P = _inertia_apply(inertia[b], V[b])
-        VxP = _force_cross(V[b], P)
-        F[b] = (_vadd(IA[0], VxP[0]), _vadd(IA[1], VxP[1]))
-        G[b] = _inertia_apply(inertia[b], Lam[b])
-        Y[b] = _spatial_sub(
+    before: dict = {}  # V⁻ and A⁺ per joint; the same operations as inverse dynamics (shared)
+    V, A = _motions(model, S, v, gravity, acceleration=acceleration, per_dof=before)
+    lam_before: dict = {}  # Λ is summed like a velocity, with λ for v
+    Lam, _ = _motions(model, S, lam, None, want_acceleration=False, per_dof=lam_before)
+    F: list = []
+    G: list = []
+    Y: list = []
+    for b in range(model.n_body):
+        f, P = _body_force(inertia[b], V[b], A[b])
+        F.append(f)
+        G.append(_inertia_apply(inertia[b], Lam[b]))
+        Y.append(_spatial_sub(
             _spatial_sub(_force_cross(V[b], G[b]), _force_cross(Lam[b], P)),
             _inertia_apply(inertia[b], _motion_cross(V[b], Lam[b])),
-        )
-    for b in reversed(range(nb)):  # subtree sums, leaves to root
+        ))
+    for b in reversed(range(model.n_body)):  # subtree sums, leaves to root
         p = parent[b]
         if p >= 0:
             F[p] = _spatial_add(F[p], F[b])
             G[p] = _spatial_add(G[p], G[b])
             Y[p] = _spatial_add(Y[p], Y[b])
     q_bar: list = [0.0] * model.nq
-    v_bar: list = [0.0] * nv
+    v_bar: list = [0.0] * model.nv
     for j in range(joints.n_joint):
         b, d = joints.body[j], joints.dofadr[j]
-        Sd, Vm = S[d], v_before[d]
+        Sd, Vm = S[d], before["V-"][d]
         Vp = _spatial_add(Vm, _spatial_scale(v[d], Sd))
         inner = _spatial_sub(Y[b], _force_cross(Vp, G[b]))
         X = _spatial_add(
-            _spatial_add(_force_cross(lam_before[d], F[b]), _force_cross(a_after[d], G[b])),
+            _spatial_add(_force_cross(lam_before["V-"][d], F[b]), _force_cross(before["A+"][d], G[b])),
             _force_cross(Vm, inner),
         )
         q_bar[joints.qposadr[j]] = -_spatial_dot(Sd, X)
