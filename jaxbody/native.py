@@ -820,6 +820,7 @@ def _inverse_dynamics_block(em: _Emitter, model, q: list, v: list, acceleration:
             continue
         sym = em.emit(f"{t.name} /* inverse dynamics */", "block", (t,))
         em.blocks[sym.name] = (group, i)
+        group.setdefault("first", i)  # the reverse pass reaches it last: the rule runs there
         out.append(sym)
     return out
 
@@ -829,7 +830,7 @@ def _adjoint_program(ops: list, active: set, seeds: list) -> dict:
 
     ``seeds``: ``(value, cotangent)`` pairs; returns value name -> adjoint. The outputs of a
     hand-differentiated block (:func:`_inverse_dynamics_block`) collect their adjoints; at the
-    block's first output (the last one reached) its rule emits the adjoints of its inputs.
+    block's first symbolic output (the last one reached) its rule emits the adjoints of its inputs.
     """
     adj: dict = {}
 
@@ -850,7 +851,7 @@ def _adjoint_program(ops: list, active: set, seeds: list) -> dict:
         if kind == "block":
             group, i = out.em.blocks[out.name]
             group["cts"][i] = adj.get(out.name, 0.0)
-            if i == 0 and not all(_is_zero(x) for x in group["cts"]):
+            if i == group["first"] and not all(_is_zero(x) for x in group["cts"]):
                 for value, g in group["rule"](group["cts"]):
                     acc(value, g)
             continue
