@@ -50,6 +50,7 @@ their source. :func:`available` says whether the kernel can be used here; with
 ``kernel="auto"`` jaxbody falls back to the vectorised kernel where it cannot.
 """
 
+import contextlib
 import ctypes
 import functools
 import hashlib
@@ -60,6 +61,11 @@ import subprocess
 import tempfile
 import threading
 from pathlib import Path
+
+try:  # POSIX: builders of the same library in several processes take turns (_build)
+    import fcntl
+except ImportError:  # pragma: no cover
+    fcntl = None
 
 import jax
 import jax.numpy as jnp
@@ -210,6 +216,15 @@ class _Sym:
     def stop(self):
         """The same value with no derivative (the derivative programs treat it as a constant)."""
         return self.em.emit(f"{self.name} /* constant */", "stop", (self,))
+
+
+def _with_derivative(value, derivative):
+    """``value``, whose derivative the derivative programs take to be ``derivative``'s: the
+    computation of ``derivative``'s own value is left to the compiler to drop where nothing else
+    reads it."""
+    if not isinstance(derivative, _Sym):
+        return value
+    return derivative.em.emit(f"{_value(value)} /* derivative: {derivative.name} */", "attach", (value, derivative))
 
 
 def _stop(x):
@@ -790,6 +805,8 @@ def _tangent_program(ops: list, seeds: dict) -> dict:
             t = ds[0] * 0.5 / out
         elif kind == "block":
             t = ds[0]
+        elif kind == "attach":
+            t = ds[1]
         elif kind == "atan2":
             y, x = args
             t = (x * ds[0] - y * ds[1]) / (x * x + y * y)
@@ -867,6 +884,8 @@ def _adjoint_program(ops: list, active: set, seeds: list) -> dict:
                 acc(args[1], -g)
         elif kind == "neg":
             acc(args[0], -g)
+        elif kind == "attach":
+            acc(args[1], g)
         elif kind == "*":
             for a, b in ((args[0], args[1]), (args[1], args[0])):
                 if isinstance(a, _Sym) and a.name in active:
@@ -940,7 +959,9 @@ def _generate(tree, joints, with_external: bool, dtype, mode: str = "fd") -> str
         if ext is None and unrolled.adjoint_applies(joints):
             tau = _inverse_dynamics_block(em, model, q, v, a0, g, tau)
         correction = unrolled._ltdl_substitute(L0, inv_d0, lam, [fi - t for fi, t in zip(f, tau)])
-        return [x + c for x, c in zip(a0, correction)]
+        # the value is a₀ itself (the correction is zero up to rounding): the stages that follow
+        # do not wait on inverse dynamics and a second substitution, which only the reverse pass reads
+        return [_with_derivative(x, x + c) for x, c in zip(a0, correction)]
 
     if step:
         h = _inputs(em, "h", 1, slots["h"])[0]
@@ -1062,16 +1083,35 @@ def _build(source: str, stem: str) -> Path:
     target = _cache_dir() / f"{stem}_{key}.so"
     if target.is_file():
         return target
-    with tempfile.TemporaryDirectory(dir=target.parent) as tmp:
-        src = Path(tmp) / "src.cc"
-        src.write_text(source)
-        out = Path(tmp) / "lib.so"
-        cmd = [compiler, *_FLAGS, f"-I{jax.ffi.include_dir()}", str(src), "-o", str(out)]
-        proc = subprocess.run(cmd, capture_output=True, text=True)
-        if proc.returncode != 0:
-            raise RuntimeError(f"building the native kernel failed ({' '.join(cmd)}):\n{proc.stderr[-4000:]}")
-        os.replace(out, target)  # atomic: concurrent builders of the same library agree
+    # one builder of a library at a time across processes (test workers, a batch job's
+    # processes): the others wait on the lock and load what it built
+    with open(target.with_suffix(".lock"), "a") as lock, _exclusive(lock):
+        if target.is_file():
+            return target
+        with tempfile.TemporaryDirectory(dir=target.parent) as tmp:
+            src = Path(tmp) / "src.cc"
+            src.write_text(source)
+            out = Path(tmp) / "lib.so"
+            cmd = [compiler, *_FLAGS, f"-I{jax.ffi.include_dir()}", str(src), "-o", str(out)]
+            proc = subprocess.run(cmd, capture_output=True, text=True)
+            if proc.returncode != 0:
+                raise RuntimeError(f"building the native kernel failed ({' '.join(cmd)}):\n{proc.stderr[-4000:]}")
+            os.replace(out, target)  # atomic: a process that does not take the lock never sees half a file
     return target
+
+
+@contextlib.contextmanager
+def _exclusive(fh):
+    """Hold an exclusive advisory lock on the open file ``fh`` (POSIX ``flock``; no lock where the
+    platform has none)."""
+    if fcntl is None:
+        yield
+        return
+    fcntl.flock(fh, fcntl.LOCK_EX)
+    try:
+        yield
+    finally:
+        fcntl.flock(fh, fcntl.LOCK_UN)
 
 
 @functools.cache

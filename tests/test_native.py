@@ -8,6 +8,8 @@ multiple of the SIMD width, unbatched inputs), with derivatives against finite d
 in float32, and inside ``jb.simulate``.
 """
 
+import os
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -401,6 +403,32 @@ def test_unavailable_native_kernel_is_a_clear_error_and_auto_falls_back(monkeypa
     monkeypatch.setenv("JAXBODY_CACHE_DIR", str(tmp_path))
     with pytest.raises(RuntimeError, match="building the native kernel failed"):
         native._build("int x;", "probe")
+
+
+def test_concurrent_builders_of_one_library_compile_it_once(tmp_path):
+    """Processes that build the same library at the same time (test workers, a batch job's
+    processes) take turns on a lock: the compiler runs once and every process gets the file."""
+    import shutil
+    import subprocess
+    import sys
+
+    compiler = shutil.which("g++")
+    if compiler is None:
+        pytest.fail("this test needs g++ (the native kernel's compiler)")
+    log = tmp_path / "calls.log"
+    wrapper = tmp_path / "cxx"
+    # a compiler that records each call and takes a while, so the builders overlap
+    wrapper.write_text(f"#!/bin/sh\necho call >> {log}\nsleep 1\nexec {compiler} \"$@\"\n")
+    wrapper.chmod(0o755)
+    env = dict(os.environ, CXX=str(wrapper), JAXBODY_CACHE_DIR=str(tmp_path / "cache"))
+    code = ("import sys; from jaxbody import native; "
+            "print(native._build('extern \"C\" int jb_probe() { return 7; }', 'probe'))")
+    procs = [subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.PIPE, text=True)
+             for _ in range(3)]
+    paths = {p.communicate(timeout=120)[0].strip() for p in procs}
+    assert all(p.returncode == 0 for p in procs)
+    assert len(paths) == 1 and os.path.isfile(paths.pop())
+    assert log.read_text().split() == ["call"]
 
 
 def test_sines_of_large_joint_angles():
