@@ -295,24 +295,108 @@ class _Guarded(DelegatingSolver):
     fixed step is accepted, so the solve stops there (``t_final``, ``q_final``, ``v_final`` show
     the first non-finite state) instead of carrying NaN to ``t1`` and calling that a success. ``isinstance`` checks (adaptive,
     implicit) are forwarded to the wrapped solver by diffrax.
+
+    ``record=True`` (fixed steps): the first non-finite step of each trajectory is recorded in
+    the solver state (:class:`_Failure`) and the loop stops only when every trajectory of a
+    ``vmap`` batch has failed (alone, at once). The result code the loop sees is then the same
+    for the whole batch, so diffrax's batched loop needs no per-trajectory predicate and does
+    not select every carried array (saved trajectories included) on every step;
+    :func:`_apply_failure` gives each trajectory its own outcome after the solve, equal to what
+    the stopping loop gives.
     """
 
     project: Any = None
+    record: bool = eqx.field(static=True, default=False, kw_only=True)
 
     def __getattr__(self, name):
         # anything else diffrax reads from the solver (e.g. an implicit solver's root_finder,
         # whose tolerances it sets from the step-size controller) is the wrapped solver's
-        if name.startswith("__") or name in ("solver", "project", "scan_kind"):
+        if name.startswith("__") or name in ("solver", "project", "scan_kind", "record"):
             raise AttributeError(name)
         return getattr(self.solver, name)
 
+    def init(self, terms, t0, t1, y0, args):
+        state = self.inner.init(terms, t0, t1, y0, args)
+        if not self.record:
+            return state
+        t0 = jnp.asarray(t0)
+        failure = _Failure(failed=jnp.asarray(False), t=jnp.full_like(t0, jnp.inf), y=y0,
+                           steps=jnp.zeros((), jnp.int32), count=jnp.zeros((), jnp.int32))
+        return state, failure
+
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
-        y1, err, dense, state, result = self.inner.step(terms, t0, t1, y0, args, solver_state, made_jump)
+        inner_state, failure = solver_state if self.record else (solver_state, None)
+        y1, err, dense, state, result = self.inner.step(terms, t0, t1, y0, args, inner_state, made_jump)
         if self.project is not None:
             y1 = self.project(y1)
         finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves(y1)]))
-        result = diffrax.RESULTS.where(finite, result, diffrax.RESULTS.nonfinite)
-        return y1, err, dense, state, result
+        if not self.record:
+            result = diffrax.RESULTS.where(finite, result, diffrax.RESULTS.nonfinite)
+            return y1, err, dense, state, result
+        first = ~finite & ~failure.failed
+        count = failure.count + 1
+        failure = _Failure(
+            failed=failure.failed | first,
+            t=jnp.where(first, t1, failure.t),
+            y=jax.tree.map(lambda a, b: jnp.where(first, a, b), y1, failure.y),
+            steps=jnp.where(first, count, failure.steps),
+            count=count,
+        )
+        # stop when every trajectory has failed: one code for a whole vmap batch
+        result = diffrax.RESULTS.where(eqx.internal.unvmap_all(failure.failed), diffrax.RESULTS.nonfinite, result)
+        return y1, err, dense, (state, failure), result
+
+
+class _Failure(eqx.Module):
+    """The first non-finite step of a trajectory (:class:`_Guarded` with ``record=True``):
+    whether there was one, its end time and state, and how many steps it was; ``count``: the
+    steps taken so far."""
+
+    failed: Array
+    t: Array
+    y: Any
+    steps: Array
+    count: Array
+
+
+def _failure_record(solver, solver_state):
+    """The :class:`_Failure` in a solve's final solver state, or ``None`` (no recording guard)."""
+    # type(), not isinstance: diffrax counts a wrapper as an instance of what it wraps
+    while issubclass(type(solver), DelegatingSolver) and type(solver) is not _Guarded:
+        # a wrapper's state (a PartitionSolver's) holds the wrapped solver's first
+        solver, solver_state = solver.solver, solver_state[0]
+    if type(solver) is _Guarded and solver.record:
+        return solver_state[1]
+    return None
+
+
+def _records_failures(solver) -> bool:
+    while issubclass(type(solver), DelegatingSolver) and type(solver) is not _Guarded:
+        solver = solver.solver
+    return type(solver) is _Guarded and solver.record
+
+
+def _apply_failure(failure, ts, ys, tf, yf, stats, result, final_is_last):
+    """Each trajectory's own outcome from the recorded first failure: the result ``nonfinite``,
+    the end time and state of the failing step as the final ones, the step counts up to it, and
+    the saved times after it padded with ``inf`` as diffrax pads times a solve never reached
+    (``final_is_last``: the last saved point is the final state, diffrax's ``SaveAt(t1=True)``)."""
+    failed = failure.failed
+    late = failed & (ts > failure.t)
+    if final_is_last:
+        late = late.at[-1].set(False)
+    pad = lambda x: jnp.where(late.reshape(late.shape + (1,) * (x.ndim - 1)), jnp.inf, x)  # noqa: E731
+    ts = pad(ts)
+    ys = jax.tree.map(pad, ys)
+    if final_is_last:
+        ts = ts.at[-1].set(jnp.where(failed, failure.t, ts[-1]))
+        ys = jax.tree.map(lambda a, b: a.at[-1].set(jnp.where(failed, b, a[-1])), ys, failure.y)
+    tf = tf.at[-1].set(jnp.where(failed, failure.t, tf[-1]))
+    yf = jax.tree.map(lambda a, b: a.at[-1].set(jnp.where(failed, b, a[-1])), yf, failure.y)
+    steps = jnp.where(failed, failure.steps, stats["num_steps"])
+    stats = {**stats, "num_steps": steps, "num_accepted_steps": jnp.where(failed, steps, stats["num_accepted_steps"])}
+    result = RESULTS.where(failed, RESULTS.nonfinite, result)
+    return ts, ys, tf, yf, stats, result
 
 
 class _UnitQuaternions(eqx.Module):
@@ -921,6 +1005,12 @@ def _simulate_scene(
     if saveat.dense or saveat.subs is not None and not isinstance(saveat.subs, diffrax.SubSaveAt):
         raise ValueError("simulate: pass dense=True instead of SaveAt(dense=True); nested subs are not supported")
     adjoint = _adjoint(adjoint)
+    if isinstance(controller, (diffrax.ConstantStepSize, diffrax.StepTo)) and not isinstance(
+        adjoint, diffrax.BacksolveAdjoint
+    ):
+        # fixed steps: each trajectory's failure is recorded, not stopped on (one loop predicate
+        # for a vmap batch); backsolve's adjoint solve keeps the stopping guard (no solver state)
+        solver_obj = _Guarded(solver_obj.solver, solver_obj.project, record=True)
     solver_obj = for_adjoint(partition_solver(solver_obj, scene, adjoint), adjoint, max_steps)
 
     constrained = _scene_constraints(scene) if check_constraints else None
@@ -1179,6 +1269,7 @@ def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps,
     # t1 or where it stopped): there the last saved point stands for it (one save state less
     # carried through the loop and its checkpoints)
     single = isinstance(adjoint, diffrax.BacksolveAdjoint) or (main.t1 and not isinstance(solver, PartitionSolver))
+    state = isinstance(solver, PartitionSolver) or _records_failures(solver)
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(functools.partial(_vector_field, slots=slots)),
         solver,
@@ -1187,8 +1278,8 @@ def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps,
         dt0,
         y0,
         args=(scene, valid),
-        saveat=diffrax.SaveAt(subs=main, dense=dense) if single else diffrax.SaveAt(
-            subs=[main, diffrax.SubSaveAt(t1=True)], dense=dense, solver_state=isinstance(solver, PartitionSolver)),
+        saveat=diffrax.SaveAt(subs=main, dense=dense, solver_state=state) if single else diffrax.SaveAt(
+            subs=[main, diffrax.SubSaveAt(t1=True)], dense=dense, solver_state=state),
         stepsize_controller=controller,
         max_steps=max_steps,
         adjoint=adjoint,
@@ -1198,6 +1289,11 @@ def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps,
     )
     ys, yf = (sol.ys, sol.ys) if single else sol.ys
     ts, tf = (sol.ts, sol.ts) if single else sol.ts
+    stats = {k: jnp.asarray(sol.stats[k]) for k in ("num_steps", "num_accepted_steps", "num_rejected_steps")}
+    result = RESULTS.promote(sol.result)
+    failure = _failure_record(solver, sol.solver_state) if state else None
+    if failure is not None:
+        ts, ys, tf, yf, stats, result = _apply_failure(failure, ts, ys, tf, yf, stats, result, single and main.t1)
     q, v = ys[0], ys[1]
     finite = jnp.all(jnp.isfinite(q), axis=-1) & jnp.all(jnp.isfinite(v), axis=-1)
     work = {}
@@ -1230,8 +1326,6 @@ def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps,
         # Λ does not depend on the coordinate partition: each state with its best-conditioned one
         lam = jax.vmap(lambda tt, a, b: with_best_partition(scene, tt, a, b).evaluate(tt, a, b)[2])(t_safe, qs, vs)
         reactions = jnp.where(finite[:, None], lam, jnp.nan)
-    stats = {k: jnp.asarray(sol.stats[k]) for k in ("num_steps", "num_accepted_steps", "num_rejected_steps")}
-    result = RESULTS.promote(sol.result)
     stats["num_repartitions"], repartition_times, result = _partition_outcome(solver, sol, result)
     out = Solution(
         t=ts, q=q, v=v, energy=energy, work=work, energy_drift=drift, constraint_drift=cdrift,

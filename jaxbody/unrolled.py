@@ -544,8 +544,15 @@ def _inverse_dynamics_vjp(model, q, v, acceleration, gravity, lam) -> tuple[list
     - ``∂(λᵀτ)/∂v_j = S_j · (ΣY − 2 V⁻_j ×* ΣG)``,
 
     where ``⁻``/``⁺`` are the values just before/after joint ``j`` (``V⁺ = V⁻ + S_j v_j``).
-    Uses the identity ``(a × b)·f = a·(b ×* f)`` to gather each sum once per body, so the cost
-    is a few spatial products per body: O(n), about half the reverse-mode program.
+    Uses the identity ``(a × b)·f = a·(b ×* f)`` to gather each sum once per body; with
+    ``m·(n ×* f) = −(n × m)·f`` and ``Ṡ_j = V⁻_j × S_j`` (a term of the acceleration recursion,
+    so already computed) the projections are evaluated as
+
+    - ``∂q_j = (Λ⁻_j × S_j)·F + (A⁺_j × S_j + V⁺_j × Ṡ_j)·ΣG + Ṡ_j·ΣY``,
+    - ``∂v_j = S_j·ΣY + 2 Ṡ_j·ΣG``,
+
+    three motion cross products and five dot products a joint. The cost is a few spatial
+    products per body: O(n), about a third of the reverse-mode program.
 
     ``lam``: the cotangent of ``τ`` (one scalar per DoF; Python ``0.0`` where it is zero).
     Returns ``(q̄, v̄)``: lists over ``nq`` and ``nv``.
@@ -580,14 +587,16 @@ def _inverse_dynamics_vjp(model, q, v, acceleration, gravity, lam) -> tuple[list
     for j in range(joints.n_joint):
         b, d = joints.body[j], joints.dofadr[j]
         Sd, Vm = S[d], before["V-"][d]
-        Vp = _spatial_add(Vm, _spatial_scale(v[d], Sd))
-        inner = _spatial_sub(Y[b], _force_cross(Vp, G[b]))
-        X = _spatial_add(
-            _spatial_add(_force_cross(lam_before["V-"][d], F[b]), _force_cross(before["A+"][d], G[b])),
-            _force_cross(Vm, inner),
+        Vp = _spatial_add(Vm, _spatial_scale(v[d], Sd))  # V⁺ (inverse dynamics' own sum)
+        Sdot = _motion_cross(Vm, Sd)  # V⁻ × S: the acceleration recursion's term (shared)
+        # S·(m ×* f) = −(m × S)·f turns each projected force cross product into a motion cross
+        # product with S (or with Sdot = V⁻ × S, already computed) dotted with a subtree sum
+        GY = _spatial_add(_motion_cross(before["A+"][d], Sd), _motion_cross(Vp, Sdot))
+        q_bar[joints.qposadr[j]] = _add(
+            _add(_spatial_dot(_motion_cross(lam_before["V-"][d], Sd), F[b]), _spatial_dot(GY, G[b])),
+            _spatial_dot(Sdot, Y[b]),
         )
-        q_bar[joints.qposadr[j]] = -_spatial_dot(Sd, X)
-        v_bar[d] = _spatial_dot(Sd, _spatial_sub(Y[b], _spatial_scale(2.0, _force_cross(Vm, G[b]))))
+        v_bar[d] = _add(_spatial_dot(Sd, Y[b]), _mul(2.0, _spatial_dot(Sdot, G[b])))
     return q_bar, v_bar
 
 

@@ -14,6 +14,7 @@
 import functools
 import re
 
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -499,3 +500,38 @@ def test_nan_blow_up_under_jit_says_when_and_where():
     with pytest.raises(Exception, match=rf"simulate: the solve failed at t = {t_fail:.6g}: the state became NaN or inf"
                                         r".*\n  state at the failure: q = \[-?[0-9.]+e\+[0-9]+\], v = \[-inf\]"):
         jax.block_until_ready(jax.jit(lambda q: jb.simulate(sys, q, v0, 5.0, **kw).q)(q0))
+
+
+@pytest.mark.parametrize("saves", ["n_save", "t1"])
+def test_a_batch_member_that_blows_up_gets_its_own_outcome(saves):
+    """With fixed steps under vmap, the members that blow up (explicit Euler on stiff springs)
+    are recorded and the loop runs on for the others: every member's solution (result code,
+    final time and state, step counts, saved times and states, padded with inf after the
+    failure) equals the solve of that member alone, which stops at its failure."""
+    ks = jnp.array([1.0, 1e6, 4.0, 3e5])
+    save = dict(n_save=11) if saves == "n_save" else dict(saveat=diffrax.SaveAt(t1=True))
+
+    def run(k):
+        return jb.simulate(Spring(k), jnp.array([1.0]), jnp.array([0.0]), 5.0, solver="euler", dt0=0.01,
+                           throw=False, **save)
+
+    batch = jax.jit(jax.vmap(run))(ks)
+    alone = jax.jit(run)
+    codes = []
+    for i, k in enumerate(ks):
+        ref = alone(k)
+        got = jax.tree.map(lambda x: x[i], batch)
+        codes.append(int(got.result._value))
+        assert int(got.result._value) == int(ref.result._value)
+        for name in ("t_final", "q_final", "v_final", "t", "q", "v"):
+            np.testing.assert_array_equal(np.asarray(getattr(got, name)), np.asarray(getattr(ref, name)), err_msg=name)
+        for name in ("num_steps", "num_accepted_steps", "num_rejected_steps"):
+            assert int(got.stats[name]) == int(ref.stats[name]), name
+    nonfinite, ok = int(jb.RESULTS.nonfinite._value), int(jb.RESULTS.successful._value)
+    assert codes == [ok, nonfinite, ok, nonfinite]
+    # the stiffer spring fails first; the others reach t1
+    t_final = np.asarray(batch.t_final)
+    assert t_final[1] < t_final[3] < 5.0 and t_final[0] == t_final[2] == 5.0
+    with pytest.raises(Exception, match=r"failed at t = [0-9.e-]+ \(batch member 1 of 4\): the state became NaN or inf"):
+        jax.block_until_ready(jax.jit(jax.vmap(lambda k: jb.simulate(
+            Spring(k), jnp.array([1.0]), jnp.array([0.0]), 5.0, solver="euler", dt0=0.01, **save).q))(ks))
