@@ -1293,6 +1293,8 @@ def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps,
     result = RESULTS.promote(sol.result)
     failure = _failure_record(solver, sol.solver_state) if state else None
     if failure is not None:
+        # a trajectory that failed has no derivative to give: no cotangent enters the loop's state
+        failure = jax.lax.stop_gradient(failure)
         ts, ys, tf, yf, stats, result = _apply_failure(failure, ts, ys, tf, yf, stats, result, single and main.t1)
     q, v = ys[0], ys[1]
     finite = jnp.all(jnp.isfinite(q), axis=-1) & jnp.all(jnp.isfinite(v), axis=-1)
