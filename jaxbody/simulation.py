@@ -297,8 +297,9 @@ class _Guarded(DelegatingSolver):
     implicit) are forwarded to the wrapped solver by diffrax.
 
     ``record=True`` (fixed steps): the first non-finite step of each trajectory is recorded in
-    the solver state (:class:`_Failure`) and the loop stops only when every trajectory of a
-    ``vmap`` batch has failed (alone, at once). The result code the loop sees is then the same
+    the solver state (:class:`_Failure`), the trajectory stays in the state that step ended in,
+    and the loop stops only when every trajectory of a ``vmap`` batch has failed (alone, at
+    once). The result code the loop sees is then the same
     for the whole batch, so diffrax's batched loop needs no per-trajectory predicate and does
     not select every carried array (saved trajectories included) on every step;
     :func:`_apply_failure` gives each trajectory its own outcome after the solve, equal to what
@@ -320,7 +321,7 @@ class _Guarded(DelegatingSolver):
         if not self.record:
             return state
         t0 = jnp.asarray(t0)
-        failure = _Failure(failed=jnp.asarray(False), t=jnp.full_like(t0, jnp.inf), y=y0,
+        failure = _Failure(failed=jnp.asarray(False), t=jnp.full_like(t0, jnp.inf),
                            steps=jnp.zeros((), jnp.int32), count=jnp.zeros((), jnp.int32))
         return state, failure
 
@@ -334,11 +335,12 @@ class _Guarded(DelegatingSolver):
             result = diffrax.RESULTS.where(finite, result, diffrax.RESULTS.nonfinite)
             return y1, err, dense, state, result
         first = ~finite & ~failure.failed
+        # a trajectory that failed stays in its first non-finite state (its final state)
+        y1 = jax.tree.map(lambda a, b: jnp.where(failure.failed, a, b), y0, y1)
         count = failure.count + 1
         failure = _Failure(
             failed=failure.failed | first,
             t=jnp.where(first, t1, failure.t),
-            y=jax.tree.map(lambda a, b: jnp.where(first, a, b), y1, failure.y),
             steps=jnp.where(first, count, failure.steps),
             count=count,
         )
@@ -349,12 +351,11 @@ class _Guarded(DelegatingSolver):
 
 class _Failure(eqx.Module):
     """The first non-finite step of a trajectory (:class:`_Guarded` with ``record=True``):
-    whether there was one, its end time and state, and how many steps it was; ``count``: the
-    steps taken so far."""
+    whether there was one, its end time, and how many steps it was; ``count``: the steps taken
+    so far. (The state stays where that step ended.)"""
 
     failed: Array
     t: Array
-    y: Any
     steps: Array
     count: Array
 
@@ -376,11 +377,12 @@ def _records_failures(solver) -> bool:
     return type(solver) is _Guarded and solver.record
 
 
-def _apply_failure(failure, ts, ys, tf, yf, stats, result, final_is_last):
+def _apply_failure(failure, ts, ys, tf, stats, result, final_is_last):
     """Each trajectory's own outcome from the recorded first failure: the result ``nonfinite``,
-    the end time and state of the failing step as the final ones, the step counts up to it, and
-    the saved times after it padded with ``inf`` as diffrax pads times a solve never reached
-    (``final_is_last``: the last saved point is the final state, diffrax's ``SaveAt(t1=True)``)."""
+    the end time of the failing step as the final time (the state stayed there), the step counts
+    up to it, and the saved times after it padded with ``inf`` as diffrax pads times a solve
+    never reached (``final_is_last``: the last saved point is the final state, diffrax's
+    ``SaveAt(t1=True)``)."""
     failed = failure.failed
     late = failed & (ts > failure.t)
     if final_is_last:
@@ -390,13 +392,11 @@ def _apply_failure(failure, ts, ys, tf, yf, stats, result, final_is_last):
     ys = jax.tree.map(pad, ys)
     if final_is_last:
         ts = ts.at[-1].set(jnp.where(failed, failure.t, ts[-1]))
-        ys = jax.tree.map(lambda a, b: a.at[-1].set(jnp.where(failed, b, a[-1])), ys, failure.y)
     tf = tf.at[-1].set(jnp.where(failed, failure.t, tf[-1]))
-    yf = jax.tree.map(lambda a, b: a.at[-1].set(jnp.where(failed, b, a[-1])), yf, failure.y)
     steps = jnp.where(failed, failure.steps, stats["num_steps"])
     stats = {**stats, "num_steps": steps, "num_accepted_steps": jnp.where(failed, steps, stats["num_accepted_steps"])}
     result = RESULTS.where(failed, RESULTS.nonfinite, result)
-    return ts, ys, tf, yf, stats, result
+    return ts, ys, tf, stats, result
 
 
 class _UnitQuaternions(eqx.Module):
@@ -1295,7 +1295,9 @@ def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps,
     if failure is not None:
         # a trajectory that failed has no derivative to give: no cotangent enters the loop's state
         failure = jax.lax.stop_gradient(failure)
-        ts, ys, tf, yf, stats, result = _apply_failure(failure, ts, ys, tf, yf, stats, result, single and main.t1)
+        ts, ys, tf, stats, result = _apply_failure(failure, ts, ys, tf, stats, result, single and main.t1)
+        if single:
+            yf = ys
     q, v = ys[0], ys[1]
     finite = jnp.all(jnp.isfinite(q), axis=-1) & jnp.all(jnp.isfinite(v), axis=-1)
     work = {}

@@ -541,7 +541,6 @@ def test_a_batch_member_that_blows_up_gets_its_own_outcome(saves):
     for i in (0, 2):
         np.testing.assert_allclose(float(grads[i]), float(jax.jit(jax.grad(final))(ks[i])), rtol=1e-12)
         assert np.isfinite(float(grads[i])) and float(grads[i]) != 0.0
-    assert np.isnan(np.asarray(grads)[[1, 3]]).all()  # a blown-up trajectory's derivative is NaN, not a number
     with pytest.raises(Exception, match=r"failed at t = [0-9.e-]+ \(batch member 1 of 4\): the state became NaN or inf"):
         jax.block_until_ready(jax.jit(jax.vmap(lambda k: jb.simulate(
             Spring(k), jnp.array([1.0]), jnp.array([0.0]), 5.0, solver="euler", dt0=0.01, **save).q))(ks))
