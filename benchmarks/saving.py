@@ -7,7 +7,7 @@ over ``--batch`` states for ``--steps`` steps, with three ways of saving: the fi
 final-state-only time, measured in interleaved rounds (median of ``--rounds``) in one process.
 
 With fixed steps the solve's loop does not stop trajectory by trajectory (``docs/simulation.md``,
-"Failures"), so a batched loop need not select everything it carries, the saved trajectories
+"Errors"), so a batched loop need not select everything it carries, the saved trajectories
 included, on every step: run this on a commit before that change and after it to see what that
 select cost.
 
