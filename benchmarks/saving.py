@@ -39,6 +39,7 @@ def main(argv=None):
     p.add_argument("--batch", type=int, default=1024)
     p.add_argument("--steps", type=int, default=1000)
     p.add_argument("--rounds", type=int, default=5, help="interleaved timing rounds (the median is reported)")
+    p.add_argument("--min-time", type=float, default=0.3, help="seconds each option is timed for in a round")
     p.add_argument("--out", default=str(pathlib.Path(__file__).resolve().parent / "results"))
     p.add_argument("--name", default="saving")
     args = p.parse_args(argv)
@@ -85,7 +86,7 @@ def main(argv=None):
         samples = {label: [] for label in SAVES}
         for _ in range(args.rounds):
             for label, (f, _) in fns.items():
-                t = _common.time_per_call(lambda f=f: jax.block_until_ready(f(q0, v0)), min_time=0.3, repeats=3)
+                t = _common.time_per_call(lambda f=f: jax.block_until_ready(f(q0, v0)), min_time=args.min_time, repeats=3)
                 samples[label].append(t["median_s"] / (B * steps))
         per = {label: float(np.median(s)) for label, s in samples.items()}
         results["models"][name] = {

@@ -259,6 +259,21 @@ def test_single_state_builds_smoke(tmp_path):
     assert "| chain2 | step_vjp |" in (tmp_path / "rec.md").read_text()
 
 
+def test_saving_benchmark_smoke(tmp_path):
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env.setdefault("XLA_FLAGS", default_xla_flags())
+    cmd = [sys.executable, str(BENCH / "saving.py"), "--models", "double_pendulum", "--batch", "4", "--steps", "20",
+           "--rounds", "1", "--min-time", "0.01", "--out", str(tmp_path), "--name", "rec"]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env, cwd=REPO)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    rec = json.loads((tmp_path / "rec.json").read_text())
+    assert rec["stamp"]["commit"] and rec["results"]["steps"] == 20
+    rows = rec["results"]["models"]["double_pendulum"]
+    assert list(rows) == ["t1", "n_save=101", "n_save=1001"] and rows["t1"]["over_t1"] == 1.0
+    assert all(r["ns_per_state_step"] > 0 and len(r["samples_ns"]) == 1 for r in rows.values())
+    assert "| double_pendulum | n_save=1001 |" in (tmp_path / "rec.md").read_text()
+
+
 def test_throughput_rerender_of_the_gpu_records(tmp_path):
     # The GPU records were measured on a lent machine; --rerender re-analyses them here. The
     # GPU targets come out of their numbers, and targets a run did not measure say so.
