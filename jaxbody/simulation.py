@@ -334,15 +334,22 @@ class _Guarded(DelegatingSolver):
         if not self.record:
             result = diffrax.RESULTS.where(finite, result, diffrax.RESULTS.nonfinite)
             return y1, err, dense, state, result
-        first = ~finite & ~failure.failed
+        count = failure.count + 1
         # a trajectory that failed stays in its first non-finite state (its final state)
         y1 = jax.tree.map(lambda a, b: jnp.where(failure.failed, a, b), y0, y1)
-        count = failure.count + 1
-        failure = _Failure(
-            failed=failure.failed | first,
-            t=jnp.where(first, t1, failure.t),
-            steps=jnp.where(first, count, failure.steps),
-            count=count,
+
+        def record(failure, t1):
+            first = ~finite & ~failure.failed
+            return _Failure(failed=failure.failed | first, t=jnp.where(first, t1, failure.t),
+                            steps=jnp.where(first, count, failure.steps), count=count)
+
+        # while every trajectory is finite (the usual case) a batch skips the record's selects
+        failure = lax.cond(
+            eqx.internal.unvmap_any(~finite | failure.failed),
+            record,
+            lambda failure, t1: eqx.tree_at(lambda f: f.count, failure, count),
+            lax.stop_gradient(failure),
+            lax.stop_gradient(t1),
         )
         # stop when every trajectory has failed: one code for a whole vmap batch
         result = diffrax.RESULTS.where(eqx.internal.unvmap_all(failure.failed), diffrax.RESULTS.nonfinite, result)
