@@ -299,11 +299,11 @@ class _Guarded(DelegatingSolver):
     ``record=True`` (fixed steps): the first non-finite step of each trajectory is recorded in
     the solver state (:class:`_Failure`), the trajectory stays in the state that step ended in,
     and the loop stops only when every trajectory of a ``vmap`` batch has failed (alone, at
-    once). The result code the loop sees is then the same
-    for the whole batch, so diffrax's batched loop needs no per-trajectory predicate and does
-    not select every carried array (saved trajectories included) on every step;
-    :func:`_apply_failure` gives each trajectory its own outcome after the solve, equal to what
-    the stopping loop gives.
+    once). The result code the loop sees is then the same for the whole batch, so diffrax's
+    batched loop needs no per-trajectory predicate and does not select every carried array
+    (saved trajectories included) on every step; the record itself is updated (a conditional
+    on the batch) only once some trajectory is not finite. :func:`_apply_failure` gives each
+    trajectory its own outcome after the solve, equal to what the stopping loop gives.
     """
 
     project: Any = None
