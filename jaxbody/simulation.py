@@ -367,21 +367,22 @@ class _Failure(eqx.Module):
     count: Array
 
 
-def _failure_record(solver, solver_state):
-    """The :class:`_Failure` in a solve's final solver state, or ``None`` (no recording guard)."""
+def _recording_depth(solver) -> int | None:
+    """How many wrappers (a PartitionSolver) sit above a recording :class:`_Guarded` in
+    ``solver``; ``None`` when it has none."""
+    depth = 0
     # type(), not isinstance: diffrax counts a wrapper as an instance of what it wraps
     while issubclass(type(solver), DelegatingSolver) and type(solver) is not _Guarded:
-        # a wrapper's state (a PartitionSolver's) holds the wrapped solver's first
-        solver, solver_state = solver.solver, solver_state[0]
-    if type(solver) is _Guarded and solver.record:
-        return solver_state[1]
-    return None
+        solver, depth = solver.solver, depth + 1
+    return depth if type(solver) is _Guarded and solver.record else None
 
 
-def _records_failures(solver) -> bool:
-    while issubclass(type(solver), DelegatingSolver) and type(solver) is not _Guarded:
-        solver = solver.solver
-    return type(solver) is _Guarded and solver.record
+def _failure_record(solver_state, depth: int):
+    """The :class:`_Failure` in a solve's final solver state (a wrapper's state holds the
+    wrapped solver's first)."""
+    for _ in range(depth):
+        solver_state = solver_state[0]
+    return solver_state[1]
 
 
 def _apply_failure(failure, ts, ys, tf, stats, result, final_is_last):
@@ -1276,7 +1277,8 @@ def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps,
     # t1 or where it stopped): there the last saved point stands for it (one save state less
     # carried through the loop and its checkpoints)
     single = isinstance(adjoint, diffrax.BacksolveAdjoint) or (main.t1 and not isinstance(solver, PartitionSolver))
-    state = isinstance(solver, PartitionSolver) or _records_failures(solver)
+    depth = _recording_depth(solver)
+    state = isinstance(solver, PartitionSolver) or depth is not None
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(functools.partial(_vector_field, slots=slots)),
         solver,
@@ -1298,7 +1300,7 @@ def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps,
     ts, tf = (sol.ts, sol.ts) if single else sol.ts
     stats = {k: jnp.asarray(sol.stats[k]) for k in ("num_steps", "num_accepted_steps", "num_rejected_steps")}
     result = RESULTS.promote(sol.result)
-    failure = _failure_record(solver, sol.solver_state) if state else None
+    failure = None if depth is None else _failure_record(sol.solver_state, depth)
     if failure is not None:
         # a trajectory that failed has no derivative to give: no cotangent enters the loop's state
         failure = jax.lax.stop_gradient(failure)

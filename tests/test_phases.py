@@ -544,3 +544,31 @@ def test_a_batch_member_that_blows_up_gets_its_own_outcome(saves):
     with pytest.raises(Exception, match=r"failed at t = [0-9.e-]+ \(batch member 1 of 4\): the state became NaN or inf"):
         jax.block_until_ready(jax.jit(jax.vmap(lambda k: jb.simulate(
             Spring(k), jnp.array([1.0]), jnp.array([0.0]), 5.0, solver="euler", dt0=0.01, **save).q))(ks))
+
+
+@pytest.mark.slow  # about a minute (two compilations of a constrained RK4 solve)
+def test_a_constrained_batch_with_fixed_steps_equals_its_members():
+    """Fixed steps on a scene with Maggi constraints, where the re-partitioning solver wraps the
+    guard that records failures: a vmapped batch equals its members solved alone (states,
+    constraint reactions, result codes and repartition counts)."""
+    model = double_pendulum()
+    q0 = jnp.array([0.3, 0.5])
+    x_tip = float(tip(model, q0)[0])
+    wall = jc.PointOnPlane(model, "link2", (0, 0, -L2), normal=(1, 0, 0), origin=(x_tip, 0, 0))
+    on_wall = jb.scene(model, constraints=[wall])
+    v0s = jnp.array([[2.5, 1.0], [-1.0, 0.5], [0.3, 2.0]])
+
+    def run(v0):
+        return jb.simulate(on_wall, q0, v0, 0.3, solver="rk4", dt0=1e-3, n_save=7, project_initial=True, throw=False)
+
+    batch = jax.jit(jax.vmap(run))(v0s)
+    alone = jax.jit(run)
+    for i in range(len(v0s)):
+        ref = alone(v0s[i])
+        assert int(batch.result._value[i]) == int(ref.result._value) == int(jb.RESULTS.successful._value)
+        for name in ("q", "v", "reactions", "q_final", "v_final"):
+            np.testing.assert_allclose(np.asarray(getattr(batch, name)[i]), np.asarray(getattr(ref, name)),
+                                       rtol=1e-12, atol=1e-12, err_msg=name)
+        assert int(batch.stats["num_repartitions"][i]) == int(ref.stats["num_repartitions"])
+        # the tip stays on the wall
+        np.testing.assert_allclose(np.asarray(jax.vmap(lambda q: tip(model, q)[0])(batch.q[i])), x_tip, atol=1e-9)
