@@ -243,6 +243,20 @@ def _time_per_call(fn, *, min_time, repeats, budget, warmup, max_number) -> dict
 _NOT_LAUNCHED = {"parameter", "get-tuple-element", "tuple", "constant", "bitcast"}
 
 
+def count_eqns(jax, jaxpr) -> int:
+    """Equations of a jaxpr, including those of every sub-jaxpr (calls, loops, custom rules)."""
+    total = 0
+    for eqn in jaxpr.eqns:
+        total += 1
+        for param in eqn.params.values():
+            for sub in param if isinstance(param, (list, tuple)) else (param,):
+                if isinstance(sub, jax.extend.core.ClosedJaxpr):
+                    total += count_eqns(jax, sub.jaxpr)
+                elif isinstance(sub, jax.extend.core.Jaxpr):
+                    total += count_eqns(jax, sub)
+    return total
+
+
 def loop_body_ops(hlo_text: str) -> dict:
     """What one iteration of a compiled program's loops runs: for each ``while`` of the optimised
     HLO text (``compiled.as_text()``), the top-level operations of its body other than

@@ -33,20 +33,6 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import _common  # noqa: E402
 
 
-def count_eqns(jax, jaxpr) -> int:
-    """Equations of a jaxpr, including those of every sub-jaxpr (calls, loops, custom rules)."""
-    total = 0
-    for eqn in jaxpr.eqns:
-        total += 1
-        for param in eqn.params.values():
-            for sub in param if isinstance(param, (list, tuple)) else (param,):
-                if isinstance(sub, jax.extend.core.ClosedJaxpr):
-                    total += count_eqns(jax, sub.jaxpr)
-                elif isinstance(sub, jax.extend.core.Jaxpr):
-                    total += count_eqns(jax, sub)
-    return total
-
-
 def effect_sets(jb, model, jnp):
     nv, nb = model.nv, model.n_body
 
@@ -103,7 +89,7 @@ def measure(jax, jnp, np, scene, batch, min_time):
     def f(t, q, v):
         return scene.acceleration(t, q, v)
 
-    eqns = count_eqns(jax, jax.make_jaxpr(f)(t, q, v).jaxpr)
+    eqns = _common.count_eqns(jax, jax.make_jaxpr(f)(t, q, v).jaxpr)
     t0 = time.perf_counter()
     compiled = jax.jit(f).lower(t, q, v).compile()
     compile_s = time.perf_counter() - t0

@@ -117,14 +117,37 @@ def body_point_velocity(model, q, v, body: int, point) -> Float[Array, " 3"]:
     return jax.jvp(lambda qq: body_point(model, qq, body, point), (q,), (qpos_rate(model, q, v),))[1]
 
 
+def _point_gap(model, q, body_a: int, point_a, body_b: int, point_b) -> Float[Array, " 3"]:
+    """``p_a(q) − p_b(q)`` of two body points (``-1``: the world), the frames computed once."""
+    if body_a < 0 and body_b < 0:
+        return jnp.asarray(point_a, q.dtype) - jnp.asarray(point_b, q.dtype)
+    from .kinematics import forward_kinematics
+
+    kin = forward_kinematics(model, q)
+
+    def at(body, point):
+        if body < 0:
+            return jnp.asarray(point, q.dtype)
+        return kin.body_position[body] + kin.body_rotation[body] @ point
+
+    return at(body_a, point_a) - at(body_b, point_b)
+
+
+def _point_gap_velocity(model, q, v, body_a: int, point_a, body_b: int, point_b) -> Float[Array, " 3"]:
+    """``d/dt`` of :func:`_point_gap` along ``q̇ = qpos_rate(q, v)``."""
+    from .kinematics import qpos_rate
+
+    gap = lambda qq: _point_gap(model, qq, body_a, point_a, body_b, point_b)  # noqa: E731
+    return jax.jvp(gap, (q,), (qpos_rate(model, q, v),))[1]
+
+
 def body_angular_velocity(model, q, v, body: int) -> Float[Array, " 3"]:
     """World angular velocity of ``body`` (from ``Ṙ Rᵀ``)."""
     from .kinematics import forward_kinematics, qpos_rate
 
     rot = lambda qq: forward_kinematics(model, qq).body_rotation[body]
     R, Rd = jax.jvp(rot, (q,), (qpos_rate(model, q, v),))
-    W = Rd @ R.T
-    return jnp.stack([W[2, 1], W[0, 2], W[1, 0]])
+    return _angular_velocity(R, Rd)
 
 
 class _OneRow(Constraint):
@@ -237,15 +260,37 @@ class LoopClosure(Constraint):
     def names(self):
         return tuple(f"{self.label}[{i}]" for i in range(self.size))
 
+    # both points from one evaluation of the frames: a solve differentiates these several
+    # times, and each evaluation is a copy of forward kinematics in the compiled program
     def position(self, base, t, q):
-        m = _model(base)
-        return self.axes @ (body_point(m, q, self.body_a, self.point_a) - body_point(m, q, self.body_b, self.point_b))
+        return self.axes @ _point_gap(_model(base), q, self.body_a, self.point_a, self.body_b, self.point_b)
 
     def velocity(self, base, t, q, x):
-        m = _model(base)
-        va = body_point_velocity(m, q, x, self.body_a, self.point_a)
-        vb = body_point_velocity(m, q, x, self.body_b, self.point_b)
-        return self.axes @ (va - vb)
+        return self.axes @ _point_gap_velocity(_model(base), q, x, self.body_a, self.point_a, self.body_b, self.point_b)
+
+
+def _body_frame_rate(model, q, v, body: int):
+    """``(R, x, Ṙ, ẋ)``: rotation and origin of ``body`` and their rates along
+    ``q̇ = qpos_rate(q, v)``, from one (differentiated) evaluation of the frames."""
+    from .kinematics import forward_kinematics, qpos_rate
+
+    def frame(qq):
+        kin = forward_kinematics(model, qq)
+        return kin.body_rotation[body], kin.body_position[body]
+
+    (R, x), (Rd, xd) = jax.jvp(frame, (q,), (qpos_rate(model, q, v),))
+    return R, x, Rd, xd
+
+
+def _angular_velocity(R, Rd):
+    """World angular velocity from a rotation and its rate (``Ṙ Rᵀ`` is its cross-product matrix)."""
+    W = Rd @ R.T
+    return jnp.stack([W[2, 1], W[0, 2], W[1, 0]])
+
+
+def _unit_or_zero(u):
+    """``u / |u|`` with a gradient-safe norm (zero stays zero)."""
+    return u / jnp.sqrt(jnp.maximum(u @ u, jnp.finfo(u.dtype).tiny))
 
 
 def _wheel_contact(model, q, body, centre, axis, radius, normal):
@@ -254,12 +299,15 @@ def _wheel_contact(model, q, body, centre, axis, radius, normal):
     from .kinematics import forward_kinematics
 
     kin = forward_kinematics(model, q)
-    R = kin.body_rotation[body]
-    c = kin.body_position[body] + R @ centre
+    return _wheel_contact_in(kin.body_rotation[body], kin.body_position[body], centre, axis, radius, normal)
+
+
+def _wheel_contact_in(R, x, centre, axis, radius, normal):
+    """:func:`_wheel_contact` from the wheel body's rotation ``R`` and origin ``x``: ``(centre, contact)``."""
+    c = x + R @ centre
     a = R @ axis
-    s = normal - (normal @ a) * a
     # gradient-safe normalisation (a wheel lying flat has no single contact point)
-    s = s / jnp.sqrt(jnp.maximum(s @ s, jnp.finfo(s.dtype).tiny))
+    s = _unit_or_zero(normal - (normal @ a) * a)
     return c, c - radius * s
 
 
@@ -315,17 +363,18 @@ class RollingContact(Constraint):
     def tangents(self, model, q):
         from .kinematics import forward_kinematics
 
-        a = forward_kinematics(model, q).body_rotation[self.body] @ self.axis
-        t1 = jnp.cross(a, self.normal)
-        t1 = t1 / jnp.sqrt(jnp.maximum(t1 @ t1, jnp.finfo(t1.dtype).tiny))
+        return self._tangents_in(forward_kinematics(model, q).body_rotation[self.body])
+
+    def _tangents_in(self, R):
+        t1 = _unit_or_zero(jnp.cross(R @ self.axis, self.normal))
         return jnp.stack([t1, jnp.cross(self.normal, t1)])
 
     def velocity(self, base, t, q, x):
-        m = _model(base)
-        c, d = _wheel_contact(m, q, self.body, self.centre, self.axis, self.radius, self.normal)
-        vc = body_point_velocity(m, q, x, self.body, self.centre)
-        w = body_angular_velocity(m, q, x, self.body)
-        return self.tangents(m, q) @ (vc + jnp.cross(w, d - c))
+        # the wheel's frame and its rate from one differentiated evaluation of the frames
+        R, o, Rd, od = _body_frame_rate(_model(base), q, x, self.body)
+        c, d = _wheel_contact_in(R, o, self.centre, self.axis, self.radius, self.normal)
+        vc = od + Rd @ self.centre
+        return self._tangents_in(R) @ (vc + jnp.cross(_angular_velocity(R, Rd), d - c))
 
 
 def rolling_wheel(model, body, radius, centre=(0.0, 0.0, 0.0), axis=(0.0, 0.0, 1.0), normal=(0.0, 0.0, 1.0), height=0.0):
@@ -354,13 +403,9 @@ class KnifeEdge(_OneRow):
         self.edge, self.normal = _unit(edge, "edge"), _unit(normal, "normal")
 
     def velocity(self, base, t, q, x):
-        from .kinematics import forward_kinematics
-
-        m = _model(base)
-        e = forward_kinematics(m, q).body_rotation[self.body] @ self.edge
-        lateral = jnp.cross(self.normal, e)
-        lateral = lateral / jnp.sqrt(jnp.maximum(lateral @ lateral, jnp.finfo(lateral.dtype).tiny))
-        return (lateral @ body_point_velocity(m, q, x, self.body, self.point))[None]
+        R, _, Rd, od = _body_frame_rate(_model(base), q, x, self.body)
+        lateral = _unit_or_zero(jnp.cross(self.normal, R @ self.edge))
+        return (lateral @ (od + Rd @ self.point))[None]
 
 
 class PrescribedCoordinate(_OneRow):
@@ -438,8 +483,8 @@ def _independent_loop_axes(model, spec, n_random: int = 4, rtol: float = 1e-9):
 
     def jac(q):
         def rate(x):
-            return (body_point_velocity(model, q, x, spec.body_a, jnp.asarray(spec.point_a, dtype))
-                    - body_point_velocity(model, q, x, spec.body_b, jnp.asarray(spec.point_b, dtype)))
+            return _point_gap_velocity(model, q, x, spec.body_a, jnp.asarray(spec.point_a, dtype),
+                                       spec.body_b, jnp.asarray(spec.point_b, dtype))
 
         return jax.jacfwd(rate)(jnp.zeros(model.nv, dtype))
 

@@ -524,9 +524,8 @@ class ConstrainedSystem(eqx.Module):
         x = jnp.asarray(x)
         q = jnp.asarray(q)
         t = jnp.asarray(t, x.dtype)
-        if isinstance(t, jax.core.Tracer) or isinstance(x, jax.core.Tracer) or isinstance(q, jax.core.Tracer):
-            return self._solve(t, q, x, tau, stabilise)
-        # called eagerly (outside jit/vmap): compile once per system instead of running op by op
+        # eagerly: compiled once per system instead of run op by op; traced (a vector field, its
+        # stages, events, saved reactions): the solve is traced once and its jaxpr reused
         return _solve_jit(self, t, q, x, tau, stabilise)
 
     def _solve(self, t, q, x, tau, stabilise) -> MaggiSolution:

@@ -356,3 +356,18 @@ def test_step_profile_smoke(tmp_path):
         assert r["steps_per_s"] > 0 and r["loop_body_ops"]["max"] > 0
         assert r["cost_analysis"]["flops"] > 0 and r["trace"]["call_s"] > 0
     assert "| float32 | 4 |" in (tmp_path / "rec.md").read_text()
+
+
+def test_first_call_benchmark_smoke(tmp_path):
+    """benchmarks/first_call.py: one case in a fresh process, its three stages timed."""
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env.setdefault("XLA_FLAGS", default_xla_flags())
+    cmd = [sys.executable, str(BENCH / "first_call.py"), "--cases", "rolling disk", "--repeats", "1",
+           "--out", str(tmp_path), "--name", "rec"]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env, cwd=REPO)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    rec = json.loads((tmp_path / "rec.json").read_text())
+    (run,) = rec["runs"]
+    assert run["case"] == "rolling disk" and all(run[k] > 0 for k in ("trace_s", "lower_s", "compile_s"))
+    assert all(abs(x) < 1e3 for x in run["q_final"])  # a finite state after 1 s of rolling
+    assert "| rolling disk | this tree |" in (tmp_path / "rec.md").read_text()

@@ -247,6 +247,29 @@ def test_prescribed_crank_drives_the_four_bar():
     assert np.ptp(torques) > 0.1  # the torque varies along the run: a real comparison
 
 
+def test_a_constrained_solve_traces_the_kinematics_once(monkeypatch):
+    """Every point of a constraint needs the body frames, and the residual, its Jacobian and
+    its rate each differentiate them: the frames are traced once per model and shape and the
+    trace reused (without that, these three traces of the four-bar's reduced dynamics traced
+    them 26 times). Counted on the function that builds the joint frames."""
+    from jaxbody import kinematics
+
+    calls = []
+    local_frames = kinematics._local_frames
+    monkeypatch.setattr(kinematics, "_local_frames", lambda *a: calls.append(1) or local_frames(*a))
+    s = four_bar()
+    th = four_bar_angles(0.6)
+    q = jnp.array([th[0] + 0.01, th[1] - th[0], th[2]])
+    v = maggi.project_velocities(s, q, jnp.array([1.0, 0.0, 0.0]))
+    for _ in range(3):  # three traces of the solve, as a solver's stages and events make
+        jax.make_jaxpr(lambda q, v: s.solve(0.0, q, v).xdot)(q, v)
+    # at most one trace of the frames per abstract signature (none if an earlier test in this
+    # process traced the same model structure already)
+    assert len(calls) <= 2, f"the frames were traced {len(calls)} times"
+    # and the cached trace gives the solve's own values
+    np.testing.assert_allclose(s.solve(0.0, q, v).xdot, jax.jit(lambda q, v: s.solve(0.0, q, v).xdot)(q, v), rtol=1e-13)
+
+
 def test_initial_velocity_errors_and_projection():
     s = four_bar()
     th = four_bar_angles(0.6)
@@ -398,6 +421,50 @@ def test_knife_edge_on_a_free_sled():
     np.testing.assert_allclose(r.reactions, [3.0 * u * w], rtol=1e-10)
     np.testing.assert_allclose(r.xdot[2], 0.0, atol=1e-12)
     np.testing.assert_allclose(r.xdot[:2] @ np.array([np.cos(0.3), np.sin(0.3)]), 0.0, atol=1e-12)
+
+
+def _kinematics_calls(jaxpr) -> int:
+    """How many evaluations of forward kinematics (nested calls) a traced program holds."""
+    n = 0
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name in ("pjit", "jit") and eqn.params.get("name") == "_forward_kinematics":
+            n += 1
+        for param in eqn.params.values():
+            for sub in param if isinstance(param, (list, tuple)) else (param,):
+                if isinstance(sub, jax.extend.core.ClosedJaxpr):
+                    n += _kinematics_calls(sub.jaxpr)
+                elif isinstance(sub, jax.extend.core.Jaxpr):
+                    n += _kinematics_calls(sub)
+    return n
+
+
+def test_each_ready_constraint_evaluates_the_frames_once():
+    """A constraint's residual and rate each evaluate forward kinematics once, however many
+    points or frames they use: every evaluation is one more copy of the kinematics in the
+    compiled program, and a solve differentiates these functions several times."""
+    s = four_bar()
+    th = four_bar_angles(0.6)
+    q, v = jnp.array([th[0], th[1] - th[0], th[2]]), jnp.array([1.0, -0.5, 0.3])
+    (loop,) = s.constraints
+    assert _kinematics_calls(jax.make_jaxpr(lambda q: loop.position(s.base, 0.0, q))(q).jaxpr) == 1
+    assert _kinematics_calls(jax.make_jaxpr(lambda q, v: loop.velocity(s.base, 0.0, q, v))(q, v).jaxpr) == 1
+    b = jb.ModelBuilder(gravity=(0, 0, -9.81))
+    b.add_body("wheel", joints=[jb.Free()], mass=2.0, inertia=(0.05, 0.05, 0.09))
+    model = b.build()
+    q = jnp.array([0.1, 0.2, 0.3, 0.9, 0.1, 0.3, 0.2])
+    q = q.at[3:].set(q[3:] / jnp.linalg.norm(q[3:]))
+    v = jnp.array([0.3, -0.2, 0.1, 0.5, 1.0, -0.4])
+    wheel = jc.rolling_wheel(model, "wheel", 0.3)[1]
+    skate = jc.KnifeEdge(model, "wheel", (0.1, 0, 0), edge=(1, 0, 0))
+    base = maggi.constrain(model, [skate], q_ref=q).base
+    for c in (wheel, skate):
+        jaxpr = jax.make_jaxpr(lambda q, v, c=c: c.velocity(base, 0.0, q, v))(q, v).jaxpr
+        assert _kinematics_calls(jaxpr) == 1, type(c).__name__
+    # the single evaluation gives what the point-by-point functions give
+    m = model
+    R, o, Rd, od = jc._body_frame_rate(m, q, v, 0)
+    np.testing.assert_allclose(od + Rd @ jnp.array([0.1, 0, 0]), jc.body_point_velocity(m, q, v, 0, jnp.array([0.1, 0, 0])), rtol=1e-13)
+    np.testing.assert_allclose(jc._angular_velocity(R, Rd), jc.body_angular_velocity(m, q, v, 0), rtol=1e-13)
 
 
 def four_bar_mjcf(th, solref="0.0002 1", solimp="0.99999 0.99999 0.001", sites=False):

@@ -17,6 +17,7 @@ from jax.test_util import check_grads
 import jaxbody as jb
 
 sys.path.insert(0, str(pathlib.Path(__file__).parent))
+from jaxpr_tools import count_eqns  # noqa: E402
 from random_models import hinge_chain, random_model, random_state  # noqa: E402
 
 SEEDS = [0, 1, 2, 3]
@@ -170,7 +171,7 @@ def test_trace_size_does_not_grow_with_body_count(fn):
             f = lambda q_: jb.inverse_dynamics(model, q_, q_, q_)
         else:
             f = lambda q_: jb.forward_dynamics(model, q_, q_, q_)
-        return len(jax.make_jaxpr(f)(q).jaxpr.eqns)
+        return count_eqns(jax.make_jaxpr(f)(q).jaxpr)
 
     # forward_dynamics: trees up to unrolled.MAX_BODIES run the unrolled kernel (a program
     # that grows with the tree, by design, test_unrolled.py bounds it); above it the
