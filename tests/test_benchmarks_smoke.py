@@ -226,14 +226,18 @@ def test_native_build_smoke(tmp_path):
 def test_step_kernel_smoke(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(REPO))
     env.setdefault("XLA_FLAGS", default_xla_flags())
-    cmd = [sys.executable, str(BENCH / "step_kernel.py"), "--models", "panda", "--batches", "16", "--min-time", "0.01",
-           "--out", str(tmp_path), "--name", "rec"]
+    cmd = [sys.executable, str(BENCH / "step_kernel.py"), "--models", "panda,double_pendulum", "--batches", "16",
+           "--min-time", "0.01", "--rounds", "2", "--out", str(tmp_path), "--name", "rec"]
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env, cwd=REPO)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
     rec = json.loads((tmp_path / "rec.json").read_text())
-    assert [r["piece"] for r in rec["rows"]] == ["kernel", "simulate", "energy"]
+    assert [r["piece"] for r in rec["rows"]] == ["kernel", "simulate", "energy"] * 2
+    assert [r["model"] for r in rec["rows"]] == ["panda"] * 3 + ["chain2"] * 3
     assert all(r["float64_ns"] > 0 and r["float32_ns"] > 0 and r["ratio"] > 0 for r in rec["rows"])
-    assert "| panda | 16 | kernel |" in (tmp_path / "rec.md").read_text()
+    assert all(len(r["round_ratios"]) == 2 and min(r["round_ratios"]) <= r["ratio"] <= max(r["round_ratios"])
+               for r in rec["rows"])
+    md = (tmp_path / "rec.md").read_text()
+    assert "| panda | 16 | kernel |" in md and "| chain2 | 16 | simulate |" in md
     # the same loop alone, for a profiler (step_loop.py), on the kernels just built
     cmd = [sys.executable, str(BENCH / "step_loop.py"), "--dtype", "float32", "--batch", "16", "--seconds", "0.01"]
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env, cwd=REPO)
