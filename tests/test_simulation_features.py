@@ -509,3 +509,31 @@ def test_written_out_rk4_stages_equal_the_tableau_rk4_with_every_adjoint():
         b = final(RK4(), adjoint)(y0, 9.81)
         for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
             np.testing.assert_allclose(x, y, rtol=1e-11, atol=1e-12)
+
+
+def test_normalize_qpos_is_a_select_not_a_scatter():
+    """normalize_qpos scales each ball/free quaternion to unit length and leaves every other
+    coordinate bit for bit, and a vmap batch of it compiles without a loop over the batch
+    (an indexed update compiles to a scatter that XLA's CPU backend runs as a while loop)."""
+    import sys
+    import pathlib
+
+    sys.path.insert(0, str(pathlib.Path(__file__).parent))
+    from random_models import random_model
+
+    model = random_model(3, n_body=6, kinds=("ball", "hinge", "slide"))
+    blocks = [qa[:, None] + kind.quaternion + np.arange(4) for kind, _, qa, _ in model.joints.kind_groups()
+              if kind.quaternion is not None]
+    iq = np.concatenate(blocks)
+    assert iq.shape[0] >= 2  # the free root and at least one ball
+    q = np.random.default_rng(0).normal(size=(64, model.nq)) * 3.0
+    out = np.asarray(jax.jit(jax.vmap(lambda x: jb.normalize_qpos(model, x)))(jnp.asarray(q)))
+    expect = q.copy()
+    for rows in iq:
+        expect[:, rows] = q[:, rows] / np.linalg.norm(q[:, rows], axis=1, keepdims=True)
+    np.testing.assert_allclose(out, expect, rtol=4e-16 * 4, atol=0)
+    others = np.setdiff1d(np.arange(model.nq), iq.ravel())
+    assert np.array_equal(out[:, others], q[:, others])
+    hlo = jax.jit(jax.vmap(lambda x: jb.normalize_qpos(model, x))).lower(jnp.asarray(q)).compile().as_text()
+    loops = [line for line in hlo.splitlines() if " while(" in line or " scatter(" in line]
+    assert not loops, loops[:3]
