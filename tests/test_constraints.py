@@ -19,6 +19,7 @@ import jaxbody as jb
 from jaxbody import constraints as jc
 from jaxbody import maggi
 from jaxbody.examples import disk as dk
+from jaxpr_tools import count_eqns
 
 Y_DOWN = (0.0, -1.0, 0.0)  # hinge axis: angle α maps local +x to (cos α, 0, sin α), local −z to (sin α, 0, −cos α)
 
@@ -425,17 +426,7 @@ def test_knife_edge_on_a_free_sled():
 
 def _kinematics_calls(jaxpr) -> int:
     """How many evaluations of forward kinematics (nested calls) a traced program holds."""
-    n = 0
-    for eqn in jaxpr.eqns:
-        if eqn.primitive.name in ("pjit", "jit") and eqn.params.get("name") == "_forward_kinematics":
-            n += 1
-        for param in eqn.params.values():
-            for sub in param if isinstance(param, (list, tuple)) else (param,):
-                if isinstance(sub, jax.extend.core.ClosedJaxpr):
-                    n += _kinematics_calls(sub.jaxpr)
-                elif isinstance(sub, jax.extend.core.Jaxpr):
-                    n += _kinematics_calls(sub)
-    return n
+    return count_eqns(jaxpr, lambda e: e.primitive.name in ("pjit", "jit") and e.params.get("name") == "_forward_kinematics")
 
 
 def test_each_ready_constraint_evaluates_the_frames_once():
