@@ -134,9 +134,9 @@ def forward_kinematics(model: Model, q: Float[ArrayLike, " nq"]) -> Kinematics:
     Follows MuJoCo's ``mj_kinematics`` and ``mj_comPos`` conventions (DESIGN.md).
 
     The frames are traced once per model structure and shape of ``q`` and reused (a nested
-    ``jit``): constraint residuals, their Jacobians and velocities call this for every point
-    they hold, and re-tracing it each time made up about a third of the trace of a
-    constrained simulation. XLA inlines the call, so the compiled program is unchanged.
+    ``jit``): constraint residuals, their Jacobians and rates call this again and again, and
+    re-tracing it each time was most of the trace of a constrained simulation. XLA inlines the
+    call, so the compiled program is unchanged.
     """
     q = check_shape(q, (model.nq,), "q", dtype=model.body_pos.dtype)
     return _forward_kinematics(model, q)
@@ -380,12 +380,12 @@ def integrate_qpos(model: Model, q: Float[ArrayLike, " nq"], v: Float[ArrayLike,
 def normalize_qpos(model: Model, q: Float[ArrayLike, " nq"]) -> Float[Array, " nq"]:
     """Normalise the quaternions of ball and free joints.
 
-    Written without an indexed update: each quaternion's squared norm is a product of ``q²``
-    with a static 0/1 matrix ``P`` (``nq × quaternions``) and each coordinate's norm a product
-    with ``Pᵀ``, so a ``vmap`` batch (a solver renormalises after every step) is two small
-    matrix products and a select. An indexed update compiles on XLA's CPU backend to a scatter
-    that loops over the batch, which cost ANYmal C's batched RK4 rollout as much per state in
-    float32 as in float64 (docs/performance.md).
+    Written without an indexed update: the squared norms are a product of ``q²`` (the
+    quaternions' coordinates only) with a static 0/1 matrix ``P`` (``nq × quaternions``), each
+    coordinate takes its quaternion's inverse norm by a static index, and a select keeps every
+    other coordinate as it was. An indexed update compiles on XLA's CPU backend to a scatter
+    that loops over a ``vmap`` batch, and a solver renormalises after every step. As before, a
+    non-finite or zero quaternion makes only its own coordinates non-finite.
     """
     q = jnp.asarray(q)
     blocks = [qa[:, None] + kind.quaternion + np.arange(4) for kind, _, qa, _ in model.joints.kind_groups()
@@ -395,7 +395,9 @@ def normalize_qpos(model: Model, q: Float[ArrayLike, " nq"]) -> Float[Array, " n
     iq = np.concatenate(blocks)  # (quaternions, 4) coordinates
     member = np.zeros((q.shape[-1], iq.shape[0]))
     member[iq, np.arange(iq.shape[0])[:, None]] = 1.0
-    P = jnp.asarray(member, q.dtype)
-    inverse_norm = 1.0 / jnp.sqrt(jnp.dot(q * q, P))
-    # the select keeps the other coordinates exact (and finite next to a zero quaternion)
-    return jnp.where(jnp.asarray(member.any(axis=1)), q * jnp.dot(inverse_norm, P.T), q)
+    owner = np.zeros(q.shape[-1], np.int32)  # each coordinate's quaternion (0 for the others)
+    owner[iq] = np.arange(iq.shape[0])[:, None]
+    in_quaternion = jnp.asarray(member.any(axis=1))
+    squares = jnp.where(in_quaternion, q * q, 0.0)  # an inf elsewhere stays out of the norms
+    inverse_norm = 1.0 / jnp.sqrt(jnp.dot(squares, jnp.asarray(member, q.dtype)))
+    return jnp.where(in_quaternion, q * inverse_norm[owner], q)

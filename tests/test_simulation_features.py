@@ -534,6 +534,14 @@ def test_normalize_qpos_is_a_select_not_a_scatter():
     np.testing.assert_allclose(out, expect, rtol=4e-16 * 4, atol=0)
     others = np.setdiff1d(np.arange(model.nq), iq.ravel())
     assert np.array_equal(out[:, others], q[:, others])
+    # a zero quaternion, or an inf outside the quaternions, spoils nothing else
+    bad = q[0].copy()
+    bad[iq[1]] = 0.0
+    bad[others[0]] = np.inf
+    out = np.asarray(jb.normalize_qpos(model, jnp.asarray(bad)))
+    assert np.all(np.isnan(out[iq[1]])) and out[others[0]] == np.inf
+    rest = np.setdiff1d(np.arange(model.nq), np.r_[iq[1], others[0]])
+    assert np.all(np.isfinite(out[rest]))
     hlo = jax.jit(jax.vmap(lambda x: jb.normalize_qpos(model, x))).lower(jnp.asarray(q)).compile().as_text()
     loops = [line for line in hlo.splitlines() if " while(" in line or " scatter(" in line]
     assert not loops, loops[:3]
