@@ -15,7 +15,14 @@ Conventions (docs/conventions.md): ``M(q) a + bias(q, v) = tau [+ passive] + Jáµ
 mass matrices in the coordinates of ``v``; ``external`` = ``(n_body, 6)`` world force and
 torque at each centre of mass (MuJoCo ``xfrc_applied``); reactions = ``(force, moment)`` the
 parent exerts at the base point ``O_0k``; model first, then the state, options keyword-only.
+
+Each spatial function runs its computation as one compiled program (:func:`_compiled`), built
+on the first call for a model structure and input shapes and reused by every later call with
+new values (new parameters included); called eagerly, as in a notebook, one call then costs a
+dispatch instead of hundreds of operations run one by one. Inside ``jit`` it is inlined.
 """
+
+import equinox as eqx
 
 from . import kernels, planar
 from ._types import Array, ArrayLike, Float
@@ -67,6 +74,56 @@ def _no_planar_external(name, external):
         )
 
 
+@eqx.filter_jit
+def _compiled(fn, model, *args):
+    """``fn(model, *args)`` as one compiled program, cached per function (a module-level one,
+    static), model structure and the shapes and dtypes of the arrays; Python values among
+    ``args`` (flags, a kernel name) are static. The inputs are checked before (eagerly when
+    they are concrete, so that an error names the input and points at the caller's line)."""
+    return fn(model, *args)
+
+
+def _augmented_bodies(model, q):
+    return compute_data(model, q).augmented
+
+
+def _mass_matrix(model, q):
+    return kernels.mass_matrix(model, compute_data(model, q))
+
+
+def _bias_forces(model, q, v):
+    return kernels.bias_forces(model, compute_data(model, q, v))
+
+
+def _inverse_dynamics(model, q, v, a, external, include_passive):
+    return kernels.inverse_dynamics(model, compute_data(model, q, v), a, external=external,
+                                    include_passive=include_passive)
+
+
+def _forward_dynamics(model, q, v, tau, external, include_passive, kernel):
+    force = tau
+    if include_passive:
+        passive = kernels.passive_forces_at(model, q, v)
+        force = passive if force is None else force + passive
+    return kernels.acceleration(model, q, v, force, gravity=model.gravity, external=external, kernel=kernel)
+
+
+def _joint_reactions(model, q, v, a, external):
+    return kernels.joint_reactions(model, compute_data(model, q, v), a, external=external)
+
+
+def _kinetic_energy(model, q, v):
+    return kernels.kinetic_energy(model, compute_data(model, q, v))
+
+
+def _potential_energy(model, q):
+    return kernels.potential_energy(model, compute_data(model, q))
+
+
+def _passive_forces(model, q, v):
+    return kernels.passive_forces(model, compute_data(model, q, v))
+
+
 def augmented_bodies(model: System, q: Float[ArrayLike, " nq"]) -> AugmentedBodies:
     """Subtree masses, augmented static moments and inertias about ``O_0k`` (spec eqs 5â€“6).
 
@@ -76,7 +133,7 @@ def augmented_bodies(model: System, q: Float[ArrayLike, " nq"]) -> AugmentedBodi
     if _planar(model):
         return planar.augmented_bodies(model, q)
     model, q = check_inputs(model, q=q)
-    return compute_data(model, q).augmented
+    return _compiled(_augmented_bodies, model, q)
 
 
 def mass_matrix(model: System, q: Float[ArrayLike, " nq"]) -> Float[Array, "nv nv"]:
@@ -89,7 +146,7 @@ def mass_matrix(model: System, q: Float[ArrayLike, " nq"]) -> Float[Array, "nv n
     if _planar(model):
         return planar.mass_matrix(model, q)
     model, q = check_inputs(model, q=q)
-    return kernels.mass_matrix(model, compute_data(model, q))
+    return _compiled(_mass_matrix, model, q)
 
 
 def bias_forces(model: System, q: Float[ArrayLike, " nq"], v: Float[ArrayLike, " nv"]) -> Float[Array, " nv"]:
@@ -100,7 +157,7 @@ def bias_forces(model: System, q: Float[ArrayLike, " nq"], v: Float[ArrayLike, "
     if _planar(model):
         return planar.bias_forces(model, q, v)
     model, q, v = check_inputs(model, q=q, v=v)
-    return kernels.bias_forces(model, compute_data(model, q, v))
+    return _compiled(_bias_forces, model, q, v)
 
 
 def inverse_dynamics(
@@ -127,10 +184,7 @@ def inverse_dynamics(
         _no_planar_external("inverse_dynamics", external)
         return planar.inverse_dynamics(model, q, v, a)
     model, q, v, a, *ext = check_inputs(model, q=q, v=v, a=a, external=external)
-    data = compute_data(model, q, v)
-    return kernels.inverse_dynamics(
-        model, data, a, external=ext[0] if ext else None, include_passive=include_passive
-    )
+    return _compiled(_inverse_dynamics, model, q, v, a, ext[0] if ext else None, bool(include_passive))
 
 
 def forward_dynamics(
@@ -159,11 +213,10 @@ def forward_dynamics(
     model, q, v, *rest = check_inputs(model, q=q, v=v, tau=tau, external=external)
     tau = rest.pop(0) if tau is not None else None
     ext = rest.pop(0) if external is not None else None
-    force = tau
-    if include_passive:
-        passive = kernels.passive_forces_at(model, q, v)
-        force = passive if force is None else force + passive
-    return kernels.acceleration(model, q, v, force, gravity=model.gravity, external=ext, kernel=kernel)
+    # the kernel is chosen here ($JAXBODY_KERNEL and the compiler read at each call, not once
+    # per compiled program)
+    kernel = kernels.resolve_kernel(model, kernel)
+    return _compiled(_forward_dynamics, model, q, v, tau, ext, bool(include_passive), kernel)
 
 
 def joint_reactions(
@@ -185,7 +238,7 @@ def joint_reactions(
         _no_planar_external("joint_reactions", external)
         return planar.joint_reactions(model, q, v, a)
     model, q, v, a, *ext = check_inputs(model, q=q, v=v, a=a, external=external)
-    return kernels.joint_reactions(model, compute_data(model, q, v), a, external=ext[0] if ext else None)
+    return _compiled(_joint_reactions, model, q, v, a, ext[0] if ext else None)
 
 
 def kinetic_energy(model: System, q: Float[ArrayLike, " nq"], v: Float[ArrayLike, " nv"]) -> Float[Array, ""]:
@@ -193,7 +246,7 @@ def kinetic_energy(model: System, q: Float[ArrayLike, " nq"], v: Float[ArrayLike
     if _planar(model):
         return planar.kinetic_energy(model, q, v)
     model, q, v = check_inputs(model, q=q, v=v)
-    return kernels.kinetic_energy(model, compute_data(model, q, v))
+    return _compiled(_kinetic_energy, model, q, v)
 
 
 def potential_energy(model: System, q: Float[ArrayLike, " nq"]) -> Float[Array, ""]:
@@ -201,7 +254,7 @@ def potential_energy(model: System, q: Float[ArrayLike, " nq"]) -> Float[Array, 
     if _planar(model):
         return planar.potential_energy(model, q)
     model, q = check_inputs(model, q=q)
-    return kernels.potential_energy(model, compute_data(model, q))
+    return _compiled(_potential_energy, model, q)
 
 
 def passive_forces(model: System, q: Float[ArrayLike, " nq"], v: Float[ArrayLike, " nv"]) -> Float[Array, " nv"]:
@@ -212,4 +265,4 @@ def passive_forces(model: System, q: Float[ArrayLike, " nq"], v: Float[ArrayLike
             "to tau (jaxbody.planar.forward_dynamics(system, q, v, tau))"
         )
     model, q, v = check_inputs(model, q=q, v=v)
-    return kernels.passive_forces(model, compute_data(model, q, v))
+    return _compiled(_passive_forces, model, q, v)

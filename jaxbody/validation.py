@@ -245,6 +245,13 @@ def _parameter_check(system):
     return jnp.concatenate(flags), msgs
 
 
+@eqx.filter_jit
+def _value_flags(system, given: dict):
+    """The flags of :func:`_parameter_check` and one NaN/inf flag per input, as one compiled
+    program (cached per system structure and input shapes) for eager calls."""
+    return _parameter_check(system)[0], {name: ~jnp.all(jnp.isfinite(x)) for name, x in given.items()}
+
+
 def check_inputs(system, *, q=None, v=None, tau=None, a=None, external=None) -> tuple:
     """Validate a system's parameters and the given inputs once, at the API boundary.
 
@@ -293,17 +300,25 @@ def check_inputs(system, *, q=None, v=None, tau=None, a=None, external=None) -> 
                 "external_moment (n_body,); pass them to jaxbody.planar functions"
             )
         given[name] = check_shape(value, shape, name, where, dtype=dtype)
-    flags, msgs = _parameter_check(system)
-    bad_inputs = {name: ~jnp.all(jnp.isfinite(x)) for name, x in given.items()}
-    if not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((flags, bad_inputs))):
+    concrete = not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((system, given)))
+    if concrete:
+        # the flags from one compiled program; under a trace (a jit closing over concrete
+        # inputs) they are traced after all
+        flags, bad_inputs = _value_flags(system, given)
+        concrete = not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((flags, bad_inputs)))
+    if concrete:
         # Concrete values (eager call): a plain Python error whose traceback is this call's.
-        # (eqx.error_if outside jit reports the stack of the first call that compiled it.)
-        if bool(jnp.any(flags)):
-            raise ValueError(msgs[int(jnp.argmax(flags))])
+        # (eqx.error_if outside jit reports the stack of the first call that compiled it.) The
+        # messages are written only for an error.
+        flags = np.asarray(flags)
+        if flags.any():
+            raise ValueError(_parameter_check(system)[1][int(np.argmax(flags))])
         for name, bad in bad_inputs.items():
             if bool(bad):
                 raise ValueError(f"{name} contains NaN or inf")
         return (system, *given.values())
+    flags, msgs = _parameter_check(system)
+    bad_inputs = {name: ~jnp.all(jnp.isfinite(x)) for name, x in given.items()}
     system = eqx.branched_error_if(system, jnp.any(flags), jnp.argmax(flags), msgs)
     out = [
         eqx.error_if(x, bad_inputs[name], f"{name} contains NaN or inf") for name, x in given.items()

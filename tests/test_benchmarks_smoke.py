@@ -375,3 +375,18 @@ def test_first_call_benchmark_smoke(tmp_path):
     assert run["case"] == "rolling disk" and all(run[k] > 0 for k in ("trace_s", "lower_s", "compile_s"))
     assert all(abs(x) < 1e3 for x in run["q_final"])  # a finite state after 1 s of rolling
     assert "| rolling disk | this tree |" in (tmp_path / "rec.md").read_text()
+
+
+def test_eager_calls_benchmark_smoke(tmp_path):
+    """benchmarks/eager_calls.py: one model in a fresh process, first and later eager calls timed."""
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env.setdefault("XLA_FLAGS", default_xla_flags())
+    cmd = [sys.executable, str(BENCH / "eager_calls.py"), "--models", "chain2", "--calls", "2", "--repeats", "1",
+           "--out", str(tmp_path), "--name", "rec"]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env, cwd=REPO)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    rec = json.loads((tmp_path / "rec.json").read_text())
+    (run,) = rec["runs"]
+    assert run["model"] == "chain2" and set(run["times"]) == {"inverse_dynamics", "forward_dynamics", "mass_matrix"}
+    assert all(t["first_s"] > 0 and t["later_s"] > 0 for t in run["times"].values())
+    assert "| chain2 | `jb.mass_matrix` | this tree |" in (tmp_path / "rec.md").read_text()

@@ -46,6 +46,42 @@ def test_kernels_on_data_equal_the_convenience_functions():
     )
 
 
+def test_eager_calls_run_one_compiled_program(monkeypatch):
+    # A notebook calls the public functions eagerly, state after state. The first call for a
+    # model structure traces and compiles the checks and the dynamics; later calls, with new
+    # states and new parameter values, run no Python of either (they were op by op before:
+    # hundreds of operations a call). The values stay those of the kernels, errors still name
+    # the input at the call.
+    from jaxbody import dynamics, validation
+
+    traced = {"dynamics": 0, "checks": 0}
+    inverse, check = dynamics._inverse_dynamics, validation._parameter_check
+
+    def counted_inverse(*args):
+        traced["dynamics"] += 1
+        return inverse(*args)
+
+    def counted_check(system):
+        traced["checks"] += 1
+        return check(system)
+
+    monkeypatch.setattr(dynamics, "_inverse_dynamics", counted_inverse)
+    monkeypatch.setattr(validation, "_parameter_check", counted_check)
+    model = random_model(3, n_body=3)
+    heavier = eqx.tree_at(lambda m: m.body_mass, model, model.body_mass * 1.7)
+    for i, m in enumerate((model, heavier, model)):
+        q, v, a = random_state(m, 10 + i)
+        got = jb.inverse_dynamics(m, q, v, a)
+        ref = jb.kernels.inverse_dynamics(m, jb.compute_data(m, q, v), a)
+        np.testing.assert_allclose(got, ref, rtol=1e-13, atol=1e-13)
+    assert traced == {"dynamics": 1, "checks": 1}
+    # a bad value is still reported eagerly, naming the input or the parameter
+    with pytest.raises(ValueError, match="a contains NaN or inf"):
+        jb.inverse_dynamics(model, q, v, a.at[0].set(jnp.nan))
+    with pytest.raises(ValueError, match="body_mass is negative"):
+        jb.inverse_dynamics(eqx.tree_at(lambda m: m.body_mass, model, -model.body_mass), q, v, a)
+
+
 def test_passive_forces_are_explicit_and_mj_inverse_is_include_passive():
     import mujoco
 

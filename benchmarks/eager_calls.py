@@ -1,0 +1,129 @@
+"""What the public dynamics functions cost when called eagerly, as in a notebook.
+
+    XLA_FLAGS=--xla_cpu_use_fusion_emitters=false python benchmarks/eager_calls.py [--name NAME] [--repeats N]
+        [--models panda,anymal_c] [--calls 20] [--baseline DIR]
+
+For each model (shipped in ``jaxbody/models``, or ``chainN``) and each of ``jb.inverse_dynamics``,
+``jb.forward_dynamics`` and ``jb.mass_matrix``: the time of the first call in a fresh process
+(tracing and compiling included) and the median of ``--calls`` later calls, each with a new
+random state, the result waited for. No ``jax.jit`` around the call: this is what a user's
+loop over states pays. Every repeat runs in a fresh process; medians over the repeats.
+Writes ``NAME.json`` and ``NAME.md`` (default ``eager_calls``) to ``--out`` (default
+``benchmarks/results``). ``--baseline DIR`` also times jaxbody from another checkout (``DIR``,
+e.g. a ``git worktree`` of an older commit), its workers alternating with this tree's.
+"""
+
+import argparse
+import json
+import os
+import pathlib
+import subprocess
+import sys
+import time
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+from _common import RESULTS, load_average, markdown_table, stamp, stamp_markdown  # noqa: E402
+
+FUNCTIONS = ("inverse_dynamics", "forward_dynamics", "mass_matrix")
+
+
+def _one(model_name: str, calls: int) -> dict:
+    """Time the functions on one model in this process (a fresh one)."""
+    import tempfile
+    import warnings
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+    import numpy as np
+
+    import jaxbody as jb
+    from dynamics import model_path
+
+    shipped = pathlib.Path(jb.__file__).parent / "models"
+    path = model_path(model_name, shipped, pathlib.Path(tempfile.mkdtemp()))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = jb.from_mjcf(str(path))
+    rng = np.random.default_rng(0)
+
+    def state():
+        q = jb.normalize_qpos(model, jnp.asarray(np.asarray(model.qpos0) + 0.3 * rng.standard_normal(model.nq)))
+        return q, jnp.asarray(rng.standard_normal(model.nv))
+
+    run = {
+        "inverse_dynamics": lambda q, v: jb.inverse_dynamics(model, q, v, v),
+        "forward_dynamics": lambda q, v: jb.forward_dynamics(model, q, v),
+        "mass_matrix": lambda q, v: jb.mass_matrix(model, q),
+    }
+    out = {}
+    for name in FUNCTIONS:
+        q, v = state()
+        t0 = time.perf_counter()
+        jax.block_until_ready(run[name](q, v))
+        first = time.perf_counter() - t0
+        later = []
+        for _ in range(calls):
+            q, v = state()
+            t0 = time.perf_counter()
+            jax.block_until_ready(run[name](q, v))
+            later.append(time.perf_counter() - t0)
+        out[name] = dict(first_s=first, later_s=float(np.median(later)))
+    return dict(model=model_name, times=out, jaxbody=str(pathlib.Path(jb.__file__).parent))
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--name", default="eager_calls")
+    p.add_argument("--out", type=pathlib.Path, default=RESULTS)
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--calls", type=int, default=20)
+    p.add_argument("--models", default="panda,anymal_c")
+    p.add_argument("--baseline", type=pathlib.Path, help="another checkout whose jaxbody is timed alongside")
+    p.add_argument("--worker", help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.worker:
+        print(json.dumps(_one(args.worker, args.calls)))
+        return
+    record = {"stamp": stamp(), "runs": []}
+    models = [m.strip() for m in args.models.split(",") if m.strip()]
+    trees = {"this tree": None}
+    if args.baseline:
+        commit = subprocess.run(["git", "-C", str(args.baseline), "rev-parse", "--short", "HEAD"],
+                                capture_output=True, text=True).stdout.strip()
+        trees = {f"baseline {commit or args.baseline}": args.baseline.resolve(), **trees}
+        record["baseline"] = dict(path=str(args.baseline.resolve()), commit=commit)
+    for _ in range(args.repeats):  # models and trees alternate: a drift in the machine's speed hits all alike
+        for model in models:
+            for tree, path in trees.items():
+                env = dict(os.environ)
+                if path is not None:
+                    env["PYTHONPATH"] = os.pathsep.join([str(path), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+                out = subprocess.run([sys.executable, __file__, "--worker", model, "--calls", str(args.calls)],
+                                     check=True, capture_output=True, text=True, env=env)
+                record["runs"].append(dict(json.loads(out.stdout.strip().splitlines()[-1]), tree=tree))
+                print(record["runs"][-1], flush=True)
+    import numpy as np
+
+    rows = []
+    for model in models:
+        for name in FUNCTIONS:
+            for tree in trees:
+                runs = [r["times"][name] for r in record["runs"] if r["model"] == model and r["tree"] == tree]
+                first = float(np.median([r["first_s"] for r in runs]))
+                later = float(np.median([r["later_s"] for r in runs]))
+                rows.append((model, f"`jb.{name}`", tree, f"{first:.3f}", f"{1e3 * later:.2f}", len(runs)))
+    record["stamp"]["load_average_end"] = load_average()
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / f"{args.name}.json").write_text(json.dumps(record, indent=1))
+    md = ["# Eager calls of the public dynamics functions", "", stamp_markdown(record["stamp"]), "",
+          f"Each repeat in a fresh process: the first call (trace and compile included) and the median of {args.calls} "
+          "later calls with new random states, no `jax.jit` around them; medians over the repeats.", "",
+          markdown_table(["model", "function", "jaxbody", "first call s", "later call ms", "repeats"], rows), ""]
+    (args.out / f"{args.name}.md").write_text("\n".join(md))
+    print("\n".join(md))
+
+
+if __name__ == "__main__":
+    main()
