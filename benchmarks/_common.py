@@ -51,6 +51,8 @@ __all__ = [
     "stamp_markdown",
     "time_per_call",
     "run_worker",
+    "checkouts",
+    "alternate",
     "markdown_table",
     "load_average",
     "mem_available_bytes",
@@ -286,6 +288,37 @@ def loop_body_ops(hlo_text: str) -> dict:
         out.append({"body": name, "ops": sum(ops.values()), "by_opcode": ops})
     out.sort(key=lambda d: -d["ops"])
     return {"max": out[0]["ops"] if out else 0, "bodies": out[:4]}
+
+
+def checkouts(baseline: pathlib.Path | None) -> tuple[dict, dict | None]:
+    """The jaxbody checkouts a before/after benchmark times: ``{label: path}`` (``None``: this
+    tree), the baseline (another checkout, e.g. a ``git worktree`` of an older commit) first;
+    and the record's ``baseline`` entry (``None`` without one)."""
+    if baseline is None:
+        return {"this tree": None}, None
+    commit = subprocess.run(["git", "-C", str(baseline), "rev-parse", "--short", "HEAD"],
+                            capture_output=True, text=True).stdout.strip()
+    path = pathlib.Path(baseline).resolve()
+    return {f"baseline {commit or baseline}": path, "this tree": None}, dict(path=str(path), commit=commit)
+
+
+def alternate(script, cases: list, trees: dict, repeats: int, extra=()) -> list[dict]:
+    """Run ``script --worker CASE *extra`` in a fresh process for every repeat, case and
+    checkout, in that nesting (a drift in the machine's speed hits every case and checkout
+    alike); each worker prints one JSON line last. Returns those results, each with its
+    checkout's label as ``tree``."""
+    runs = []
+    for _ in range(repeats):
+        for case in cases:
+            for tree, path in trees.items():
+                env = dict(os.environ)
+                if path is not None:
+                    env["PYTHONPATH"] = os.pathsep.join([str(path), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+                out = subprocess.run([sys.executable, str(script), "--worker", case, *extra], check=True,
+                                     capture_output=True, text=True, env=env)
+                runs.append(dict(json.loads(out.stdout.strip().splitlines()[-1]), tree=tree))
+                print(runs[-1], flush=True)
+    return runs
 
 
 def run_worker(cmd, *, timeout: float, result_file: pathlib.Path, env=None) -> dict:

@@ -15,14 +15,12 @@ e.g. a ``git worktree`` of an older commit), its workers alternating with this t
 
 import argparse
 import json
-import os
 import pathlib
-import subprocess
 import sys
 import time
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-from _common import RESULTS, load_average, markdown_table, stamp, stamp_markdown  # noqa: E402
+from _common import RESULTS, alternate, checkouts, load_average, markdown_table, stamp, stamp_markdown  # noqa: E402
 
 FUNCTIONS = ("inverse_dynamics", "forward_dynamics", "mass_matrix")
 
@@ -88,22 +86,10 @@ def main(argv=None):
         return
     record = {"stamp": stamp(), "runs": []}
     models = [m.strip() for m in args.models.split(",") if m.strip()]
-    trees = {"this tree": None}
-    if args.baseline:
-        commit = subprocess.run(["git", "-C", str(args.baseline), "rev-parse", "--short", "HEAD"],
-                                capture_output=True, text=True).stdout.strip()
-        trees = {f"baseline {commit or args.baseline}": args.baseline.resolve(), **trees}
-        record["baseline"] = dict(path=str(args.baseline.resolve()), commit=commit)
-    for _ in range(args.repeats):  # models and trees alternate: a drift in the machine's speed hits all alike
-        for model in models:
-            for tree, path in trees.items():
-                env = dict(os.environ)
-                if path is not None:
-                    env["PYTHONPATH"] = os.pathsep.join([str(path), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
-                out = subprocess.run([sys.executable, __file__, "--worker", model, "--calls", str(args.calls)],
-                                     check=True, capture_output=True, text=True, env=env)
-                record["runs"].append(dict(json.loads(out.stdout.strip().splitlines()[-1]), tree=tree))
-                print(record["runs"][-1], flush=True)
+    trees, baseline = checkouts(args.baseline)
+    if baseline:
+        record["baseline"] = baseline
+    record["runs"] = alternate(__file__, models, trees, args.repeats, ("--calls", str(args.calls)))
     import numpy as np
 
     rows = []

@@ -19,14 +19,12 @@ the same linkage driven by a prescribed crank angle, and the rolling disk of Mag
 
 import argparse
 import json
-import os
 import pathlib
-import subprocess
 import sys
 import time
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-from _common import RESULTS, count_eqns, load_average, markdown_table, stamp, stamp_markdown  # noqa: E402
+from _common import RESULTS, alternate, checkouts, count_eqns, load_average, markdown_table, stamp, stamp_markdown  # noqa: E402
 
 CASES = ("four-bar", "driven four-bar", "rolling disk")
 
@@ -87,22 +85,10 @@ def main(argv=None):
     for case in cases:
         if case not in CASES:
             raise SystemExit(f"unknown case {case!r}: one of {CASES}")
-    trees = {"this tree": None}
-    if args.baseline:
-        commit = subprocess.run(["git", "-C", str(args.baseline), "rev-parse", "--short", "HEAD"],
-                                capture_output=True, text=True).stdout.strip()
-        trees = {f"baseline {commit or args.baseline}": args.baseline.resolve(), **trees}
-        record["baseline"] = dict(path=str(args.baseline.resolve()), commit=commit)
-    for _ in range(args.repeats):  # cases and trees alternate: a drift in the machine's speed hits all alike
-        for case in cases:
-            for tree, path in trees.items():
-                env = dict(os.environ)
-                if path is not None:
-                    env["PYTHONPATH"] = os.pathsep.join([str(path), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
-                out = subprocess.run([sys.executable, __file__, "--worker", case], check=True, capture_output=True,
-                                     text=True, env=env)
-                record["runs"].append(dict(json.loads(out.stdout.strip().splitlines()[-1]), tree=tree))
-                print(record["runs"][-1], flush=True)
+    trees, baseline = checkouts(args.baseline)
+    if baseline:
+        record["baseline"] = baseline
+    record["runs"] = alternate(__file__, cases, trees, args.repeats)
     import numpy as np
 
     rows = []

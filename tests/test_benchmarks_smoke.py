@@ -362,31 +362,29 @@ def test_step_profile_smoke(tmp_path):
     assert "| float32 | 4 |" in (tmp_path / "rec.md").read_text()
 
 
-def test_first_call_benchmark_smoke(tmp_path):
-    """benchmarks/first_call.py: one case in a fresh process, its three stages timed."""
+def _run_fresh(script, tmp_path, *args):
+    """A before/after benchmark (fresh worker processes) with one repeat: its record and table."""
     env = dict(os.environ, PYTHONPATH=str(REPO))
     env.setdefault("XLA_FLAGS", default_xla_flags())
-    cmd = [sys.executable, str(BENCH / "first_call.py"), "--cases", "rolling disk", "--repeats", "1",
-           "--out", str(tmp_path), "--name", "rec"]
+    cmd = [sys.executable, str(BENCH / script), *args, "--repeats", "1", "--out", str(tmp_path), "--name", "rec"]
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env, cwd=REPO)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
-    rec = json.loads((tmp_path / "rec.json").read_text())
+    return json.loads((tmp_path / "rec.json").read_text()), (tmp_path / "rec.md").read_text()
+
+
+def test_first_call_benchmark_smoke(tmp_path):
+    """benchmarks/first_call.py: one case in a fresh process, its three stages timed."""
+    rec, md = _run_fresh("first_call.py", tmp_path, "--cases", "rolling disk")
     (run,) = rec["runs"]
     assert run["case"] == "rolling disk" and all(run[k] > 0 for k in ("trace_s", "lower_s", "compile_s"))
     assert all(abs(x) < 1e3 for x in run["q_final"])  # a finite state after 1 s of rolling
-    assert "| rolling disk | this tree |" in (tmp_path / "rec.md").read_text()
+    assert "| rolling disk | this tree |" in md
 
 
 def test_eager_calls_benchmark_smoke(tmp_path):
     """benchmarks/eager_calls.py: one model in a fresh process, first and later eager calls timed."""
-    env = dict(os.environ, PYTHONPATH=str(REPO))
-    env.setdefault("XLA_FLAGS", default_xla_flags())
-    cmd = [sys.executable, str(BENCH / "eager_calls.py"), "--models", "chain2", "--calls", "2", "--repeats", "1",
-           "--out", str(tmp_path), "--name", "rec"]
-    p = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env, cwd=REPO)
-    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
-    rec = json.loads((tmp_path / "rec.json").read_text())
+    rec, md = _run_fresh("eager_calls.py", tmp_path, "--models", "chain2", "--calls", "2")
     (run,) = rec["runs"]
     assert run["model"] == "chain2" and set(run["times"]) == {"inverse_dynamics", "forward_dynamics", "mass_matrix"}
     assert all(t["first_s"] > 0 and t["later_s"] > 0 for t in run["times"].values())
-    assert "| chain2 | `jb.mass_matrix` | this tree |" in (tmp_path / "rec.md").read_text()
+    assert "| chain2 | `jb.mass_matrix` | this tree |" in md
