@@ -1,9 +1,10 @@
 """What the public dynamics functions cost when called eagerly, as in a notebook.
 
     XLA_FLAGS=--xla_cpu_use_fusion_emitters=false python benchmarks/eager_calls.py [--name NAME] [--repeats N]
-        [--models panda,anymal_c] [--calls 20] [--baseline DIR]
+        [--models panda,anymal_c,planar3] [--calls 20] [--baseline DIR]
 
-For each model (shipped in ``jaxbody/models``, or ``chainN``) and each of ``jb.inverse_dynamics``,
+For each model (shipped in ``jaxbody/models``, ``chainN``, or ``planar3``: the planar three-link
+manipulator of ``jaxbody.examples.telegin``, in absolute angles) and each of ``jb.inverse_dynamics``,
 ``jb.forward_dynamics`` and ``jb.mass_matrix``: the time of the first call in a fresh process
 (tracing and compiling included) and the median of ``--calls`` later calls, each with a new
 random state, the result waited for. No ``jax.jit`` around the call: this is what a user's
@@ -23,6 +24,8 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 from _common import RESULTS, alternate, checkouts, load_average, markdown_table, stamp, stamp_markdown  # noqa: E402
 
 FUNCTIONS = ("inverse_dynamics", "forward_dynamics", "mass_matrix")
+#: the planar three-link manipulator of the augmented-body paper (``jaxbody.examples.telegin``)
+PLANAR = "planar3"
 
 
 def _one(model_name: str, calls: int) -> dict:
@@ -39,16 +42,24 @@ def _one(model_name: str, calls: int) -> dict:
     import jaxbody as jb
     from dynamics import model_path
 
-    shipped = pathlib.Path(jb.__file__).parent / "models"
-    path = model_path(model_name, shipped, pathlib.Path(tempfile.mkdtemp()))
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        model = jb.from_mjcf(str(path))
     rng = np.random.default_rng(0)
+    if model_name == PLANAR:
+        from jaxbody.examples import telegin
 
-    def state():
-        q = jb.normalize_qpos(model, jnp.asarray(np.asarray(model.qpos0) + 0.3 * rng.standard_normal(model.nq)))
-        return q, jnp.asarray(rng.standard_normal(model.nv))
+        model = telegin.three_link_manipulator()
+
+        def state():
+            return jnp.asarray(rng.standard_normal(model.nq)), jnp.asarray(rng.standard_normal(model.nv))
+    else:
+        shipped = pathlib.Path(jb.__file__).parent / "models"
+        path = model_path(model_name, shipped, pathlib.Path(tempfile.mkdtemp()))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            model = jb.from_mjcf(str(path))
+
+        def state():
+            q = jb.normalize_qpos(model, jnp.asarray(np.asarray(model.qpos0) + 0.3 * rng.standard_normal(model.nq)))
+            return q, jnp.asarray(rng.standard_normal(model.nv))
 
     run = {
         "inverse_dynamics": lambda q, v: jb.inverse_dynamics(model, q, v, v),
@@ -77,7 +88,7 @@ def main(argv=None):
     p.add_argument("--out", type=pathlib.Path, default=RESULTS)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--calls", type=int, default=20)
-    p.add_argument("--models", default="panda,anymal_c")
+    p.add_argument("--models", default="panda,anymal_c," + PLANAR)
     p.add_argument("--baseline", type=pathlib.Path, help="another checkout whose jaxbody is timed alongside")
     p.add_argument("--worker", help=argparse.SUPPRESS)
     args = p.parse_args(argv)

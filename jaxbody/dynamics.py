@@ -16,13 +16,14 @@ mass matrices in the coordinates of ``v``; ``external`` = ``(n_body, 6)`` world 
 torque at each centre of mass (MuJoCo ``xfrc_applied``); reactions = ``(force, moment)`` the
 parent exerts at the base point ``O_0k``; model first, then the state, options keyword-only.
 
-Each spatial function runs its computation as one compiled program (:func:`_compiled`), built
+Each function runs its computation as one compiled program (:func:`_compiled`), built
 on the first call for a model structure and input shapes and reused by every later call with
 new values (new parameters included); called eagerly, as in a notebook, one call then costs a
 dispatch instead of hundreds of operations run one by one. Inside ``jit`` it is inlined.
 """
 
 import equinox as eqx
+import jax.numpy as jnp
 
 from . import kernels, planar
 from ._types import Array, ArrayLike, Float
@@ -74,12 +75,18 @@ def _no_planar_external(name, external):
         )
 
 
-@eqx.filter_jit
 def _compiled(fn, model, *args):
     """``fn(model, *args)`` as one compiled program, cached per function (a module-level one,
-    static), model structure and the shapes and dtypes of the arrays; Python values among
-    ``args`` (flags, a kernel name) are static. The inputs are checked before (eagerly when
-    they are concrete, so that an error names the input and points at the caller's line)."""
+    static), model structure and the shapes and dtypes of the arrays. Flags and kernel names
+    among ``args`` are static; anything else becomes an array (a list of numbers too, which
+    would otherwise be compiled into the program). Spatial inputs are checked before (eagerly
+    when they are concrete, so that an error names the input and points at the caller's line)."""
+    args = tuple(a if a is None or isinstance(a, (bool, str)) else jnp.asarray(a) for a in args)
+    return _compiled_program(fn, model, *args)
+
+
+@eqx.filter_jit
+def _compiled_program(fn, model, *args):
     return fn(model, *args)
 
 
@@ -131,7 +138,7 @@ def augmented_bodies(model: System, q: Float[ArrayLike, " nq"]) -> AugmentedBodi
     first joint (see :mod:`jaxbody.kinematics`). Planar system: :func:`jaxbody.planar.augmented_bodies`.
     """
     if _planar(model):
-        return planar.augmented_bodies(model, q)
+        return _compiled(planar.augmented_bodies, model, q)
     model, q = check_inputs(model, q=q)
     return _compiled(_augmented_bodies, model, q)
 
@@ -144,7 +151,7 @@ def mass_matrix(model: System, q: Float[ArrayLike, " nq"]) -> Float[Array, "nv n
     :func:`jaxbody.planar.joint_mass_matrix`).
     """
     if _planar(model):
-        return planar.mass_matrix(model, q)
+        return _compiled(planar.mass_matrix, model, q)
     model, q = check_inputs(model, q=q)
     return _compiled(_mass_matrix, model, q)
 
@@ -155,7 +162,7 @@ def bias_forces(model: System, q: Float[ArrayLike, " nq"], v: Float[ArrayLike, "
     Planar system: ``h`` of :func:`jaxbody.planar.bias_forces` (absolute angles).
     """
     if _planar(model):
-        return planar.bias_forces(model, q, v)
+        return _compiled(planar.bias_forces, model, q, v)
     model, q, v = check_inputs(model, q=q, v=v)
     return _compiled(_bias_forces, model, q, v)
 
@@ -182,7 +189,7 @@ def inverse_dynamics(
     """
     if _planar(model):
         _no_planar_external("inverse_dynamics", external)
-        return planar.inverse_dynamics(model, q, v, a)
+        return _compiled(planar.inverse_dynamics, model, q, v, a)
     model, q, v, a, *ext = check_inputs(model, q=q, v=v, a=a, external=external)
     return _compiled(_inverse_dynamics, model, q, v, a, ext[0] if ext else None, bool(include_passive))
 
@@ -209,7 +216,7 @@ def forward_dynamics(
     """
     if _planar(model):
         _no_planar_external("forward_dynamics", external)
-        return planar.forward_dynamics(model, q, v, tau)
+        return _compiled(planar.forward_dynamics, model, q, v, tau)
     model, q, v, *rest = check_inputs(model, q=q, v=v, tau=tau, external=external)
     tau = rest.pop(0) if tau is not None else None
     ext = rest.pop(0) if external is not None else None
@@ -236,7 +243,7 @@ def joint_reactions(
     """
     if _planar(model):
         _no_planar_external("joint_reactions", external)
-        return planar.joint_reactions(model, q, v, a)
+        return _compiled(planar.joint_reactions, model, q, v, a)
     model, q, v, a, *ext = check_inputs(model, q=q, v=v, a=a, external=external)
     return _compiled(_joint_reactions, model, q, v, a, ext[0] if ext else None)
 
@@ -244,7 +251,7 @@ def joint_reactions(
 def kinetic_energy(model: System, q: Float[ArrayLike, " nq"], v: Float[ArrayLike, " nv"]) -> Float[Array, ""]:
     """``T = sum_k ½ m_0k |v_Ck|² + ½ ω_k·I_Ck ω_k`` from body velocities (armature adds ½ a v²)."""
     if _planar(model):
-        return planar.kinetic_energy(model, q, v)
+        return _compiled(planar.kinetic_energy, model, q, v)
     model, q, v = check_inputs(model, q=q, v=v)
     return _compiled(_kinetic_energy, model, q, v)
 
@@ -252,7 +259,7 @@ def kinetic_energy(model: System, q: Float[ArrayLike, " nq"], v: Float[ArrayLike
 def potential_energy(model: System, q: Float[ArrayLike, " nq"]) -> Float[Array, ""]:
     """Gravity plus joint-spring potential energy (as MuJoCo ``mj_energyPos``)."""
     if _planar(model):
-        return planar.potential_energy(model, q)
+        return _compiled(planar.potential_energy, model, q)
     model, q = check_inputs(model, q=q)
     return _compiled(_potential_energy, model, q)
 

@@ -80,6 +80,18 @@ def test_eager_calls_run_one_compiled_program(monkeypatch):
         jb.inverse_dynamics(model, q, v, a.at[0].set(jnp.nan))
     with pytest.raises(ValueError, match="body_mass is negative"):
         jb.inverse_dynamics(eqx.tree_at(lambda m: m.body_mass, model, -model.body_mass), q, v, a)
+    # a planar system's functions too
+    from jaxbody import planar
+    from jaxbody.examples import telegin
+
+    planar_traces = []
+    planar_mass_matrix = planar.mass_matrix
+    monkeypatch.setattr(planar, "mass_matrix", lambda *a: planar_traces.append(1) or planar_mass_matrix(*a))
+    system = telegin.three_link_manipulator()
+    for angles in (np.array([0.1, 0.2, 0.3]), np.array([0.4, -0.2, 1.0])):
+        np.testing.assert_allclose(jb.mass_matrix(system, angles), planar_mass_matrix(system, jnp.asarray(angles)),
+                                   rtol=1e-14)
+    assert len(planar_traces) == 1
 
 
 def test_passive_forces_are_explicit_and_mj_inverse_is_include_passive():
