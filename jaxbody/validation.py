@@ -245,11 +245,16 @@ def _parameter_check(system):
     return jnp.concatenate(flags), msgs
 
 
+def _nonfinite_inputs(given: dict) -> dict:
+    """One flag per input: whether it holds a NaN or inf."""
+    return {name: ~jnp.all(jnp.isfinite(x)) for name, x in given.items()}
+
+
 @eqx.filter_jit
 def _value_flags(system, given: dict):
-    """The flags of :func:`_parameter_check` and one NaN/inf flag per input, as one compiled
+    """The flags of :func:`_parameter_check` and of :func:`_nonfinite_inputs`, as one compiled
     program (cached per system structure and input shapes) for eager calls."""
-    return _parameter_check(system)[0], {name: ~jnp.all(jnp.isfinite(x)) for name, x in given.items()}
+    return _parameter_check(system)[0], _nonfinite_inputs(given)
 
 
 def check_inputs(system, *, q=None, v=None, tau=None, a=None, external=None) -> tuple:
@@ -318,7 +323,7 @@ def check_inputs(system, *, q=None, v=None, tau=None, a=None, external=None) -> 
                 raise ValueError(f"{name} contains NaN or inf")
         return (system, *given.values())
     flags, msgs = _parameter_check(system)
-    bad_inputs = {name: ~jnp.all(jnp.isfinite(x)) for name, x in given.items()}
+    bad_inputs = _nonfinite_inputs(given)
     system = eqx.branched_error_if(system, jnp.any(flags), jnp.argmax(flags), msgs)
     out = [
         eqx.error_if(x, bad_inputs[name], f"{name} contains NaN or inf") for name, x in given.items()
