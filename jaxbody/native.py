@@ -44,6 +44,14 @@ How it plugs into JAX:
   above :data:`MAX_DERIVATIVE_DOFS`; second derivatives differentiate the same linear map
   written in JAX on the unrolled kernel (:mod:`jaxbody.unrolled`).
 
+* **Whole solves.** A fixed-step RK4 solve is one program too (:func:`rk4_rollout`, mode
+  ``"rk4_run"``): each block of states is loaded once and carried in registers through every
+  step (each lane with its own times, step count and failure flag), with diffrax's step times,
+  the quaternions renormalised after each step. Its reverse sweep (:func:`rk4_rollout_vjp`,
+  ``"rk4_run_vjp"``) recomputes the steps between checkpoints that the forward call wrote and
+  runs the reverse-mode program of each step, last first: the gradient with respect to the
+  initial state. :func:`jaxbody.simulate` takes both where a solve keeps only its end state.
+
 It needs a C++17 compiler (``g++``, or ``$CXX``) when a tree is first used; compiled
 kernels are cached in ``$JAXBODY_CACHE_DIR`` (default ``~/.cache/jaxbody``) under a hash of
 their source. :func:`available` says whether the kernel can be used here; with
@@ -78,7 +86,8 @@ from . import unrolled
 from ._types import Array, ArrayLike, Float
 from .model import Model
 
-__all__ = ["MAX_DOFS", "applies", "available", "energies", "forward_dynamics", "parameter_vector", "rk4_step", "threads"]
+__all__ = ["MAX_DOFS", "applies", "available", "checkpoint_layout", "energies", "forward_dynamics", "parameter_vector",
+           "rk4_rollout", "rk4_rollout_checkpointed", "rk4_rollout_vjp", "rk4_step", "threads"]
 
 #: Largest number of DoFs ``kernel="auto"`` gives the native kernel. The generated code grows
 #: with the mass-matrix entries on each DoF's ancestor chain and their factorisation (for a
@@ -261,12 +270,15 @@ def _unflatten_parameters(target, tree, joints, flat, reshape) -> None:
 # or the seven cotangents.
 _SLOTS = {"q": 0, "v": 1, "f": 2, "p": 3, "g": 4, "ext": 5, "dq": 6, "dv": 7, "df": 8, "ct": 6}
 _STEP_SLOTS = {"q": 0, "v": 1, "f": 2, "p": 3, "g": 4, "ext": 5, "h": 6, "k": 7, "r": 8, "d": 9, "dq": 10, "dv": 11, "df": 12, "ct": 10}
+# the whole-solve program (_generate_run): the state, the model, springs and dampers, the work
+# reached so far and the schedule
+_RUN_SLOTS = {"q": 0, "v": 1, "f": 2, "p": 3, "g": 4, "ext": 5, "k": 6, "r": 7, "d": 8, "w": 9, "s": 10}
 # the energy program: the state, the model, gravity and the joint springs
 _ENERGY_SLOTS = {"q": 0, "v": 1, "p": 2, "g": 3, "k": 4, "r": 5}
 
 #: Programs: forward dynamics and one RK4 step, each with its forward- and reverse-mode
 #: derivative, and the energies of a state (no derivative programs: their tangents are rare).
-MODES = ("fd", "jvp", "vjp", "rk4", "rk4_jvp", "rk4_vjp", "energy")
+MODES = ("fd", "jvp", "vjp", "rk4", "rk4_jvp", "rk4_vjp", "energy", "rk4_run", "rk4_run_vjp")
 
 
 def _widths(joints, mode: str) -> tuple:
@@ -280,6 +292,8 @@ def _widths(joints, mode: str) -> tuple:
         "rk4_jvp": (nq, nv, nq, nv, nq, nv, 3),
         "rk4_vjp": (nq, nv, nv),
         "energy": (3,),
+        "rk4_run": (nq, nv, 1, 3),
+        "rk4_run_vjp": (nq, nv),
     }[mode]
 
 
@@ -583,7 +597,17 @@ static inline V vatan2(V y, V x) {
 
 // the generated function of the states b0 .. b0 + n - 1 (n <= W); lane l is state b0 + min(l, n - 1)
 static void fd_block(const Inputs& in, int64_t b0, int n) {
-  typedef V U;
+@ACCESS@
+@BODY@
+}
+
+extern "C" void jaxbody_range(const Inputs* in, int64_t b0, int64_t b1) {
+  for (int64_t b = b0; b < b1; b += W) fd_block(*in, b, b1 - b < W ? int(b1 - b) : W);
+}
+"""
+
+# how a block reads its operands (ld), writes its results (st) and takes sines and cosines (sc)
+_ACCESS = r"""  typedef V U;
   int64_t idx[W];
   for (int l = 0; l < W; ++l) idx[l] = b0 + (l < n ? l : n - 1);
   auto ld = [&](int k, int i) {
@@ -608,12 +632,158 @@ static void fd_block(const Inputs& in, int64_t b0, int n) {
     for (int l = 0; l < n; ++l) in.y[j][(b0 + l) * in.n[j] + i] = x[l];
 #endif
   };
-  auto sc = [n](U x, U& s, U& c) { vsincos(x, s, c, n); };
+  auto sc = [n](U x, U& s, U& c) { vsincos(x, s, c, n); };"""
+
+# A whole fixed-step RK4 solve per block of states (:func:`_generate_run`): the state stays in
+# registers (or on the stack) from the first step to the last; each lane keeps its own time,
+# step count and failure flag, and the block ends when every lane is done. Step times, the
+# clip to t1, the quaternion renormalisation after each step and the hold of a trajectory at
+# its first non-finite step are those of jaxbody.simulation's fixed-step solve (diffrax's
+# ConstantStepSize): t_k = t0 + (t1 - t0) * (k / N), t_N = t1, a time within 100 ulp below t1
+# rounded to t1. Operands: q, v, f, p, g, ext, k, r, d, the work w0 and the schedule (t0, t1, N,
+# t1 - 100 ulp, the step budget, dt0, frozen, steps per checkpoint); results: q, v, w, (t reached,
+# steps, failed) and, when asked for, the checkpoints of the reverse sweep (_RUN_VJP_BLOCK). A
+# frozen lane (an input that failed simulate's checks) takes its steps without moving.
+_RUN_BLOCK = r"""
+static void run_block(const Inputs& in, int64_t b0, int n) {
+@ACCESS@
+@INVARIANT@
+  U qc[@NQ@], vc[@NV@], qn[@NQ@], vn[@NV@];
+  for (int i = 0; i < @NQ@; ++i) qc[i] = ld(0, i);
+  for (int i = 0; i < @NV@; ++i) vc[i] = ld(1, i);
+  U wc = ld(9, 0);
+  const U t0 = ld(10, 0), t1 = ld(10, 1), steps = ld(10, 2), t1_floor = ld(10, 3), limit = ld(10, 4), dt0 = ld(10, 5);
+  const I frozen = ld(10, 6) != T(0);
+  U tprev = t0, tnext = t0 + dt0;
+  tnext = tnext < t1 ? tnext : t1;
+  U count = U{};
+  I failed = I{};
+  // checkpoints (a fifth result): every `every` steps
+  const bool store = in.y[4] != nullptr;
+  const int64_t every = store ? int64_t(ld(10, 7)[0]) : 1;
+  int64_t it = 0;
+  for (;;) {
+    const I active = (tprev < t1) & (count < limit) & (failed == 0);
+    bool any = false;
+    for (int l = 0; l < W; ++l) any |= active[l] != 0;
+    if (!any) break;
+    if (store && it % every == 0) {
+      // a checkpoint: the state at the start of this step and its times (the reverse sweep
+      // recomputes the steps from here); active lanes all have taken `it` steps
+      const int64_t at = (it / every) * (@NQ@ + @NV@ + 2);
+      for (int i = 0; i < @NQ@; ++i) st(4, at + i, qc[i]);
+      for (int i = 0; i < @NV@; ++i) st(4, at + @NQ@ + i, vc[i]);
+      st(4, at + @NQ@ + @NV@, tprev);
+      st(4, at + @NQ@ + @NV@ + 1, tnext);
+    }
+    ++it;
+    const U h = tnext - tprev;
+    U dw;
+    {
 @BODY@
+    }
+    const U wn = wc + dw;
+    I finite = (wn - wn) == T(0);  // false for inf and NaN
+    for (int i = 0; i < @NQ@; ++i) finite &= (qn[i] - qn[i]) == T(0);
+    for (int i = 0; i < @NV@; ++i) finite &= (vn[i] - vn[i]) == T(0);
+    finite |= frozen;
+    // a lane that is done keeps its state, and so does a frozen one (its time runs on)
+    const I moving = active & (frozen == 0);
+    for (int i = 0; i < @NQ@; ++i) qc[i] = moving ? qn[i] : qc[i];
+    for (int i = 0; i < @NV@; ++i) vc[i] = moving ? vn[i] : vc[i];
+    wc = moving ? wn : wc;
+    count = active ? count + T(1) : count;
+    failed |= active & (finite == 0);
+    const U next = count + T(1);
+    U tn = t0 + (t1 - t0) * (next / steps);
+    tn = next == steps ? t1 : tn;
+    tn = tn > t1_floor ? t1 : tn;
+    const U tp = tnext < t1 ? tnext : t1;
+    tprev = active ? tp : tprev;
+    tnext = active ? tn : tnext;
+  }
+  for (int i = 0; i < @NQ@; ++i) st(0, i, qc[i]);
+  for (int i = 0; i < @NV@; ++i) st(1, i, vc[i]);
+  st(2, 0, wc);
+  st(3, 0, tprev);
+  st(3, 1, count);
+  st(3, 2, failed != 0 ? U{} + T(1) : U{});
 }
 
 extern "C" void jaxbody_range(const Inputs* in, int64_t b0, int64_t b1) {
-  for (int64_t b = b0; b < b1; b += W) fd_block(*in, b, b1 - b < W ? int(b1 - b) : W);
+  for (int64_t b = b0; b < b1; b += W) run_block(*in, b, b1 - b < W ? int(b1 - b) : W);
+}
+"""
+
+# The reverse sweep of a whole solve (reverse mode with respect to the initial state): for each
+# segment of `every` steps, last first, the steps are recomputed from the segment's checkpoint
+# (the forward program, so the same states) and kept; then the reverse-mode program of one step
+# carries the cotangents of (q, v) back through them, the work's cotangent held (w1 = w0 + Δw).
+# A lane's own steps are those it took (a frozen lane: none). Operands: those of _RUN_BLOCK, then
+# the checkpoints, the forward's status, and the cotangents of the final q, v and w; results:
+# the cotangents of the initial q and v.
+_RUN_VJP_BLOCK = r"""
+#include <memory>
+static void vjp_block(const Inputs& in, int64_t b0, int n) {
+@ACCESS@
+@INVARIANT@
+  constexpr int NS = @NQ@ + @NV@;
+  U qc[@NQ@], vc[@NV@], qn[@NQ@], vn[@NV@], aq[@NQ@], av[@NV@], rq[@NQ@], rv[@NV@];
+  const U t0 = ld(10, 0), t1 = ld(10, 1), steps = ld(10, 2), t1_floor = ld(10, 3);
+  const I frozen = ld(10, 6) != T(0);
+  const int64_t every = int64_t(ld(10, 7)[0]);
+  const U taken = ld(12, 1);
+  for (int i = 0; i < @NQ@; ++i) aq[i] = ld(13, i);
+  for (int i = 0; i < @NV@; ++i) av[i] = ld(14, i);
+  const U aw = ld(15, 0);
+  int64_t total = 0;
+  for (int l = 0; l < n; ++l) total = int64_t(taken[l]) > total ? int64_t(taken[l]) : total;
+  std::unique_ptr<V[]> kept(new V[every * (NS + 1)]);  // a segment's states and step lengths
+  for (int64_t seg = (total - 1) / every; seg >= 0 && total > 0; --seg) {
+    const int64_t first = seg * every, end = first + every < total ? first + every : total;
+    const int64_t at = seg * (NS + 2);
+    for (int i = 0; i < @NQ@; ++i) qc[i] = ld(11, at + i);
+    for (int i = 0; i < @NV@; ++i) vc[i] = ld(11, at + @NQ@ + i);
+    U tprev = ld(11, at + NS), tnext = ld(11, at + NS + 1);
+    for (int64_t r = first; r < end; ++r) {
+      V* row = &kept[(r - first) * (NS + 1)];
+      const U h = tnext - tprev;
+      for (int i = 0; i < @NQ@; ++i) row[i] = qc[i];
+      for (int i = 0; i < @NV@; ++i) row[@NQ@ + i] = vc[i];
+      row[NS] = h;
+      if (r + 1 == end) break;
+      {
+@STEP@
+      }
+      for (int i = 0; i < @NQ@; ++i) qc[i] = qn[i];
+      for (int i = 0; i < @NV@; ++i) vc[i] = vn[i];
+      // the times of the next step, as the forward loop takes them (after r + 1 steps)
+      const U next = U{} + T(r + 2);
+      U tn = t0 + (t1 - t0) * (next / steps);
+      tn = next == steps ? t1 : tn;
+      tn = tn > t1_floor ? t1 : tn;
+      tprev = tnext < t1 ? tnext : t1;
+      tnext = tn;
+    }
+    for (int64_t r = end - 1; r >= first; --r) {
+      const V* row = &kept[(r - first) * (NS + 1)];
+      const I active = ((U{} + T(r)) < taken) & (frozen == 0);
+      {
+        const V* bq = row;
+        const V* bv = row + @NQ@;
+        const U h = row[NS];
+@BODY@
+      }
+      for (int i = 0; i < @NQ@; ++i) aq[i] = active ? rq[i] : aq[i];
+      for (int i = 0; i < @NV@; ++i) av[i] = active ? rv[i] : av[i];
+    }
+  }
+  for (int i = 0; i < @NQ@; ++i) st(0, i, aq[i]);
+  for (int i = 0; i < @NV@; ++i) st(1, i, av[i]);
+}
+
+extern "C" void jaxbody_range(const Inputs* in, int64_t b0, int64_t b1) {
+  for (int64_t b = b0; b < b1; b += W) vjp_block(*in, b, b1 - b < W ? int(b1 - b) : W);
 }
 """
 
@@ -913,6 +1083,32 @@ def _adjoint_program(ops: list, active: set, seeds: list) -> dict:
     return adj
 
 
+def _acceleration(em, model, joints, q, v, f, g, ext, derivative):
+    """Forward dynamics' acceleration on symbolic scalars; for ``derivative="vjp"`` written so
+    that its reverse mode goes through inverse dynamics (below)."""
+    M, bias, lam = unrolled._bias_and_mass(model, q, v, g, ext)
+    L, inv_d = unrolled._ltdl_factor(M, lam)
+    a = unrolled._ltdl_substitute(L, inv_d, lam, [fi - b for fi, b in zip(f, bias)])
+    if derivative != "vjp":
+        return a
+    # The reverse-mode programs differentiate a = a₀ + M⁻¹ (f − τ(q, v, a₀)), a₀ and the factor
+    # of M held constant: equal to a up to rounding, its derivative is forward dynamics'
+    # (implicit function theorem on τ(q, v, a) = f): M⁻¹ (∂f − ∂τ/∂q ∂q − ∂τ/∂v ∂v). The
+    # derivative passes go through inverse dynamics (Newton–Euler), not through the
+    # composite inertias and the factorisation (forward mode stays on the direct program,
+    # whose tangent is shorter than the tangent of inverse dynamics).
+    a0 = [_stop(x) for x in a]
+    L0 = {k: _stop(x) for k, x in L.items()}
+    inv_d0 = [_stop(x) for x in inv_d]
+    tau = unrolled._inverse_dynamics(model, q, v, a0, g, ext)
+    if ext is None and unrolled.adjoint_applies(joints):
+        tau = _inverse_dynamics_block(em, model, q, v, a0, g, tau)
+    correction = unrolled._ltdl_substitute(L0, inv_d0, lam, [fi - t for fi, t in zip(f, tau)])
+    # the value is a₀ itself (the correction is zero up to rounding): the stages that follow
+    # do not wait on inverse dynamics and a second substitution, which only the reverse pass reads
+    return [_with_derivative(x, x + c) for x, c in zip(a0, correction)]
+
+
 def _generate(tree, joints, with_external: bool, dtype, mode: str = "fd") -> str:
     """C++ source of forward dynamics, or of one RK4 step, for this tree (parameters, gravity,
     loads as inputs).
@@ -941,27 +1137,7 @@ def _generate(tree, joints, with_external: bool, dtype, mode: str = "fd") -> str
     derivative = mode.split("_")[-1] if mode not in ("fd", "rk4") else None
 
     def acceleration(q, v, f):
-        M, bias, lam = unrolled._bias_and_mass(model, q, v, g, ext)
-        L, inv_d = unrolled._ltdl_factor(M, lam)
-        a = unrolled._ltdl_substitute(L, inv_d, lam, [fi - b for fi, b in zip(f, bias)])
-        if derivative != "vjp":
-            return a
-        # The reverse-mode programs differentiate a = a₀ + M⁻¹ (f − τ(q, v, a₀)), a₀ and the factor
-        # of M held constant: equal to a up to rounding, its derivative is forward dynamics'
-        # (implicit function theorem on τ(q, v, a) = f): M⁻¹ (∂f − ∂τ/∂q ∂q − ∂τ/∂v ∂v). The
-        # derivative passes go through inverse dynamics (Newton–Euler), not through the
-        # composite inertias and the factorisation (forward mode stays on the direct program,
-        # whose tangent is shorter than the tangent of inverse dynamics).
-        a0 = [_stop(x) for x in a]
-        L0 = {k: _stop(x) for k, x in L.items()}
-        inv_d0 = [_stop(x) for x in inv_d]
-        tau = unrolled._inverse_dynamics(model, q, v, a0, g, ext)
-        if ext is None and unrolled.adjoint_applies(joints):
-            tau = _inverse_dynamics_block(em, model, q, v, a0, g, tau)
-        correction = unrolled._ltdl_substitute(L0, inv_d0, lam, [fi - t for fi, t in zip(f, tau)])
-        # the value is a₀ itself (the correction is zero up to rounding): the stages that follow
-        # do not wait on inverse dynamics and a second substitution, which only the reverse pass reads
-        return [_with_derivative(x, x + c) for x, c in zip(a0, correction)]
+        return _acceleration(em, model, joints, q, v, f, g, ext, derivative)
 
     if step:
         h = _inputs(em, "h", 1, slots["h"])[0]
@@ -1023,7 +1199,125 @@ def _source(em: _Emitter, results: list, dtype) -> str:
 
     body = ["  " + line for line in em.lines]
     body += [f"  st({j}, {i}, {value(x)});" for j, xs in enumerate(results) for i, x in enumerate(xs)]
-    return _KERNEL.replace("@COMMON@", _COMMON.replace("@T@", _SCALAR[np.dtype(dtype)][0])).replace("@BODY@", "\n".join(body))
+    return _KERNEL.replace("@ACCESS@", _ACCESS).replace("@COMMON@", _COMMON.replace("@T@", _SCALAR[np.dtype(dtype)][0])).replace(
+        "@BODY@", "\n".join(body))
+
+
+def _carried(em: _Emitter, name: str, n: int, array: str) -> list:
+    """``n`` scalars read from the local array ``array`` (a loop's carried state)."""
+    out = []
+    for i in range(n):
+        em.lines.append(f"const U {name}_{i} = {array}[{i}];")
+        sym = _Sym(f"{name}_{i}", em)
+        em.ops.append((sym, "input", (name,)))
+        out.append(sym)
+    return out
+
+
+def _quaternion_coordinates(joints) -> list:
+    """The ``q`` coordinates of every ball and free joint's quaternion, four at a time."""
+    out = []
+    for kind, _, qadr, _ in joints.kind_groups():
+        if kind.quaternion is not None:
+            out += [[int(a) + kind.quaternion + c for c in range(4)] for a in qadr]
+    return out
+
+
+def _run_operands(em: _Emitter, tree, joints):
+    """The operands a whole solve holds over its steps (:data:`_RUN_SLOTS`), loaded first:
+    ``(model, force, gravity, stiffness, reference, damping)``."""
+    slots = _RUN_SLOTS
+    model = _SymbolicModel(tree, joints, em, slots["p"])
+    f = _inputs(em, "f", joints.nv, slots["f"])
+    g = tuple(_inputs(em, "g", 3, slots["g"]))
+    stiffness = _inputs(em, "k", joints.n_joint, slots["k"])
+    reference = _inputs(em, "r", joints.nq, slots["r"])
+    damping = _inputs(em, "d", joints.nv, slots["d"])
+    return model, f, g, stiffness, reference, damping
+
+
+def _run_step(em: _Emitter, joints, operands, q: list, v: list, h, derivative=None) -> tuple:
+    """One step of a whole solve on symbolic scalars: the RK4 step of :func:`_rk4_scalars`, then
+    the quaternions of ball and free joints renormalised (``q / sqrt(|q|²)``, as
+    :func:`jaxbody.kinematics.normalize_qpos`). Returns ``(q1, v1, Δw)``."""
+    model, f, g, stiffness, reference, damping = operands
+
+    def field(q, v):
+        total, power = _joint_force(joints, q, v, f, stiffness, reference, damping)
+        return _acceleration(em, model, joints, q, v, total, g, None, derivative), power
+
+    q1, v1, _, _, _, _, work = _rk4_scalars(field, joints, q, v, h)
+    q1 = list(q1)
+    for block in _quaternion_coordinates(joints):
+        squares = [q1[i] * q1[i] for i in block]
+        inverse = 1.0 / _sqrt(squares[0] + squares[1] + squares[2] + squares[3])
+        for i in block:
+            q1[i] = q1[i] * inverse
+    return q1, list(v1), work[0]
+
+
+def _symbol_value(x) -> str:
+    return x.name if isinstance(x, _Sym) else f"U{{}} + T({float(x)!r})"
+
+
+def _hoisted(em: _Emitter, lines: list) -> list:
+    """``lines`` without the operand loads already in ``em``'s first part (:func:`_run_operands`)."""
+    return [line for line in lines if " = ld(" not in line]
+
+
+def _generate_run(tree, joints, dtype) -> str:
+    """C++ source of a whole fixed-step RK4 solve (``"rk4_run"``, :data:`_RUN_BLOCK`): the
+    step of :func:`_run_step` on the carried state, the operands loaded before the loop."""
+    em = _Emitter()
+    operands = _run_operands(em, tree, joints)
+    invariant = len(em.lines)
+    q = _carried(em, "q", joints.nq, "qc")
+    v = _carried(em, "v", joints.nv, "vc")
+    q1, v1, dw = _run_step(em, joints, operands, q, v, _Sym("h", em))
+    body = em.lines[invariant:]
+    body += [f"qn[{i}] = {_symbol_value(x)};" for i, x in enumerate(q1)]
+    body += [f"vn[{i}] = {_symbol_value(x)};" for i, x in enumerate(v1)]
+    body.append(f"dw = {_symbol_value(dw)};")
+    return _run_source(_RUN_BLOCK, em.lines[:invariant], {"BODY": body}, joints, dtype)
+
+
+def _generate_run_vjp(tree, joints, dtype) -> str:
+    """C++ source of the reverse sweep of a whole solve (``"rk4_run_vjp"``, :data:`_RUN_VJP_BLOCK`):
+    the same steps recomputed from the checkpoints, and the reverse-mode program of
+    :func:`_run_step` (cotangents of ``(q1, v1, Δw)`` to those of ``(q, v)``)."""
+    em = _Emitter()
+    operands = _run_operands(em, tree, joints)
+    invariant = len(em.lines)
+    q = _carried(em, "q", joints.nq, "qc")
+    v = _carried(em, "v", joints.nv, "vc")
+    q1, v1, dw = _run_step(em, joints, operands, q, v, _Sym("h", em))
+    step = em.lines[invariant:]
+    step += [f"qn[{i}] = {_symbol_value(x)};" for i, x in enumerate(q1)]
+    step += [f"vn[{i}] = {_symbol_value(x)};" for i, x in enumerate(v1)]
+
+    rev = _Emitter()
+    operands = _run_operands(rev, tree, joints)
+    q = _carried(rev, "q", joints.nq, "bq")
+    v = _carried(rev, "v", joints.nv, "bv")
+    q1, v1, dw = _run_step(rev, joints, operands, q, v, _Sym("h", rev), derivative="vjp")
+    primal = list(rev.ops)
+    cq = _carried(rev, "cq", joints.nq, "aq")
+    cv = _carried(rev, "cv", joints.nv, "av")
+    pairs = list(zip(q1, cq)) + list(zip(v1, cv)) + [(dw, _Sym("aw", rev))]
+    adj = _adjoint_program(primal, _active(primal, {"q", "v"}), pairs)
+    body = _hoisted(rev, rev.lines[invariant:])
+    body += [f"rq[{i}] = {_symbol_value(adj.get(x.name, 0.0))};" for i, x in enumerate(q)]
+    body += [f"rv[{i}] = {_symbol_value(adj.get(x.name, 0.0))};" for i, x in enumerate(v)]
+    return _run_source(_RUN_VJP_BLOCK, em.lines[:invariant], {"STEP": step, "BODY": body}, joints, dtype)
+
+
+def _run_source(block: str, invariant: list, parts: dict, joints, dtype) -> str:
+    text = block.replace("@ACCESS@", _ACCESS).replace("@INVARIANT@", "\n".join("  " + line for line in invariant))
+    for key, lines in parts.items():
+        text = text.replace(f"@{key}@", "\n".join("      " + line for line in lines))
+    text = text.replace("@NQ@", str(joints.nq)).replace("@NV@", str(joints.nv))
+    prelude = _KERNEL.split("// the generated function of the states")[0]
+    return prelude.replace("@COMMON@", _COMMON.replace("@T@", _SCALAR[np.dtype(dtype)][0])) + text
 
 
 # ----------------------------------------------------------------------------- build and load
@@ -1154,10 +1448,16 @@ class _Kernel:
         self.nv, self.nq, self.dtype, self.mode = joints.nv, joints.nq, np.dtype(dtype), mode
         self.widths = _widths(joints, mode)
         self.target = _handler(self.dtype)
-        self.source = _generate(tree, joints, with_external, self.dtype, mode)
+        if mode == "rk4_run":
+            self.source = _generate_run(tree, joints, self.dtype)
+        elif mode == "rk4_run_vjp":
+            self.source = _generate_run_vjp(tree, joints, self.dtype)
+        else:
+            self.source = _generate(tree, joints, with_external, self.dtype, mode)
         self._addresses = {}  # built on the first call (traced), where a build error then shows
-        if mode in ("fd", "rk4", "energy"):
-            self.batched = self._batched_call()
+        self._batched = {}
+        if mode in ("fd", "rk4", "energy", "rk4_run", "rk4_run_vjp"):
+            self.batched = self.batched_with(self.widths)
 
     def address(self, build: str) -> int:
         """The compiled program of one of :data:`BUILDS`, built on its first call."""
@@ -1169,20 +1469,27 @@ class _Kernel:
                 self._addresses[build] = ctypes.cast(lib.jaxbody_range, ctypes.c_void_p).value
             return self._addresses[build]
 
-    def call(self, *args) -> list:
-        """``args``: ``(B_i, n_i)`` arrays with ``B_i`` 1 or the batch size; returns ``(B, width)`` arrays."""
+    def call(self, *args, widths=None) -> list:
+        """``args``: ``(B_i, n_i)`` arrays with ``B_i`` 1 or the batch size; returns ``(B, width)``
+        arrays (``widths``: the results', default the program's)."""
         batch = max(a.shape[0] for a in args)
-        out = [jax.ShapeDtypeStruct((batch, w), self.dtype) for w in self.widths]
+        out = [jax.ShapeDtypeStruct((batch, w), self.dtype) for w in (widths or self.widths)]
         fn = jax.ffi.ffi_call(self.target, out, vmap_method="sequential")
         # every lane of a SIMD register is one state: the kernel gathers W states' inputs; the
         # batch size is static here, so the build is chosen (and built) when the call is traced
         address = self.address(build_for(batch))
         return fn(*args, kernel=np.int64(address), threads=np.int64(threads()))
 
-    def _batched_call(self):
+    def batched_with(self, widths: tuple):
+        """The call with results of ``widths``, ``vmap`` batches merged into one call."""
+        if widths not in self._batched:
+            self._batched[widths] = self._batched_call(widths)
+        return self._batched[widths]
+
+    def _batched_call(self, widths):
         @jax.custom_batching.custom_vmap
         def batched(*args):
-            return tuple(self.call(*args))
+            return tuple(self.call(*args, widths=widths))
 
         @batched.def_vmap
         def rule(axis_size, in_batched, *args):
@@ -1535,6 +1842,123 @@ def rk4_step(
     kernel = _kernel(model.tree, model.joints, with_external, np.dtype(dtype), "rk4")
     fd_kernel = _kernel(model.tree, model.joints, with_external, np.dtype(dtype))
     return _rk4_step(kernel, fd_kernel, model, q, v, force, gravity, external, h, stiffness, reference, damping)
+
+
+# ----------------------------------------------------------------------------- a whole solve
+def rk4_rollout(
+    model: Model,
+    q: Float[ArrayLike, " nq"],
+    v: Float[ArrayLike, " nv"],
+    t0: ArrayLike,
+    t1: ArrayLike,
+    dt0: ArrayLike,
+    max_steps: int | None = None,
+    force: Float[ArrayLike, " nv"] | None = None,
+    *,
+    gravity: Float[ArrayLike, "3"] | None = None,
+    stiffness: Float[ArrayLike, " n_joint"] | None = None,
+    reference: Float[ArrayLike, " nq"] | None = None,
+    damping: Float[ArrayLike, " nv"] | None = None,
+    work0: ArrayLike = 0.0,
+    frozen: ArrayLike = False,
+) -> tuple[Array, Array, Array, Array, Array, Array]:
+    """A fixed-step RK4 solve from ``t0`` to ``t1`` in one native call.
+
+    The steps are those of :func:`jaxbody.simulate` with ``solver="rk4"`` and ``dt0`` (diffrax's
+    constant step size): ``N = ceil((t1 − t0) / dt0)`` steps ending at ``t_k = t0 + (t1 − t0)·k/N``,
+    each one :func:`rk4_step` (same field: ``force``, ``gravity``, springs and dampers held),
+    the quaternions of ball and free joints renormalised after every step. A step whose result
+    is not finite ends that trajectory there (its state is that step's); ``max_steps`` (``None``:
+    no bound) ends it after that many steps. ``work0``: the dampers' work at ``t0``; ``frozen``:
+    take the steps without moving (as :func:`jaxbody.simulate` does for an input that failed
+    its checks with ``throw=False``).
+
+    Returns ``(q, v, work, t, steps, failed)``: the final state, the dampers' work there, the
+    time reached (``t1``, or the end of the last step taken), the steps taken, and whether a step
+    was not finite. A ``vmap`` batch is one call (split over the CPU cores), each state with its
+    own times. No derivatives: :func:`jaxbody.simulate` differentiates through its
+    step-by-step solve, which computes the same values. No checks; ``t1 >= t0``.
+    """
+    rows = _rollout_rows(model, q, v, t0, t1, dt0, max_steps, force, gravity, stiffness, reference, damping, work0,
+                         frozen, 1)
+    kernel = _kernel(model.tree, model.joints, False, np.dtype(model.body_pos.dtype), "rk4_run")
+    return _rollout_outputs(kernel.batched(*rows))
+
+
+def _rollout_rows(model, q, v, t0, t1, dt0, max_steps, force, gravity, stiffness, reference, damping, work0, frozen,
+                  every) -> tuple:
+    """The operands of the ``"rk4_run"`` programs (:data:`_RUN_SLOTS`), as ``(1, n)`` rows."""
+    from equinox.internal import nextafter, prevbefore
+
+    dtype = model.body_pos.dtype
+    q = jnp.asarray(q, dtype)
+    v = jnp.asarray(v, dtype)
+    t0, t1, dt0 = (jnp.asarray(x, dtype) for x in (t0, t1, dt0))
+    force = jnp.zeros(model.nv, dtype) if force is None else jnp.asarray(force, dtype)
+    gravity = jnp.zeros(3, dtype) if gravity is None else jnp.asarray(gravity, dtype)
+    stiffness = jnp.zeros(model.joints.n_joint, dtype) if stiffness is None else jnp.asarray(stiffness, dtype)
+    reference = jnp.zeros(model.nq, dtype) if reference is None else jnp.asarray(reference, dtype)
+    damping = jnp.zeros(model.nv, dtype) if damping is None else jnp.asarray(damping, dtype)
+    # diffrax's ConstantStepSize: the step count, and the time 100 ulp below t1 above which a
+    # step's end is rounded to t1
+    steps = jnp.ceil((t1 - t0) / nextafter(dt0))
+    t1_floor = t1
+    for _ in range(100):
+        t1_floor = prevbefore(t1_floor)
+    limit = jnp.asarray(np.inf if max_steps is None else max_steps, dtype)
+    schedule = jnp.stack([t0, t1, steps, t1_floor, limit, dt0, jnp.asarray(frozen, dtype), jnp.asarray(every, dtype)])
+    row = lambda x: jnp.reshape(x, (1, -1))  # noqa: E731
+    return (row(q), row(v), row(force), row(parameter_vector(model)), row(gravity), jnp.zeros((1, 1), dtype),
+            row(stiffness), row(reference), row(damping), row(jnp.asarray(work0, dtype)), row(schedule))
+
+
+def _rollout_outputs(outs) -> tuple:
+    q1, v1, w1, status = (o[0] for o in outs[:4])
+    return q1, v1, w1[0], status[0], status[1].astype(jnp.int32), status[2] > 0
+
+
+def checkpoint_layout(model: Model, max_steps: int, checkpoints: int) -> tuple[int, int]:
+    """``(every, width)``: steps between the checkpoints of a solve of at most ``max_steps``
+    steps kept in ``checkpoints`` slots, and the width of their row (each: ``q``, ``v`` and the
+    step's two times)."""
+    every = max(1, -(-max_steps // max(checkpoints, 1)))
+    slots = -(-max_steps // every)
+    return every, slots * (model.nq + model.nv + 2)
+
+
+def rk4_rollout_checkpointed(model: Model, q, v, t0, t1, dt0, max_steps: int, checkpoints: int, force=None, *,
+                             gravity=None, stiffness=None, reference=None, damping=None, work0=0.0, frozen=False):
+    """:func:`rk4_rollout` (bounded ``max_steps``) that also returns the checkpoints of its
+    reverse sweep (:func:`rk4_rollout_vjp`): the state every ``every`` steps, ``every`` the
+    fewest steps that fit ``max_steps`` into ``checkpoints`` slots (:func:`checkpoint_layout`).
+    Returns ``(q, v, work, t, steps, failed, checkpoints)``."""
+    every, width = checkpoint_layout(model, max_steps, checkpoints)
+    rows = _rollout_rows(model, q, v, t0, t1, dt0, max_steps, force, gravity, stiffness, reference, damping, work0,
+                         frozen, every)
+    kernel = _kernel(model.tree, model.joints, False, np.dtype(model.body_pos.dtype), "rk4_run")
+    outs = kernel.batched_with(kernel.widths + (width,))(*rows)
+    return _rollout_outputs(outs) + (outs[4][0],)
+
+
+def rk4_rollout_vjp(model: Model, q, v, t0, t1, dt0, max_steps: int, checkpoints: int, saved, steps, cotangent_q,
+                    cotangent_v, cotangent_work=0.0, force=None, *, gravity=None, stiffness=None, reference=None,
+                    damping=None, frozen=False):
+    """Reverse mode of :func:`rk4_rollout` with respect to the initial ``(q, v)``, in one native call.
+
+    ``saved``, ``steps``: the checkpoints and the steps taken, from
+    :func:`rk4_rollout_checkpointed` with the same arguments; ``cotangent_*``: of the final ``q``,
+    ``v`` and work. The steps between two checkpoints are recomputed (the same program as the
+    solve's), then each step's generated reverse-mode program carries the cotangents back.
+    Returns the cotangents of ``(q, v)``. A frozen trajectory passes them through."""
+    every, _ = checkpoint_layout(model, max_steps, checkpoints)
+    rows = _rollout_rows(model, q, v, t0, t1, dt0, max_steps, force, gravity, stiffness, reference, damping, 0.0,
+                         frozen, every)
+    dtype = model.body_pos.dtype
+    row = lambda x: jnp.reshape(jnp.asarray(x, dtype), (1, -1))  # noqa: E731
+    status = jnp.stack([jnp.zeros((), dtype), jnp.asarray(steps, dtype), jnp.zeros((), dtype)])
+    kernel = _kernel(model.tree, model.joints, False, np.dtype(dtype), "rk4_run_vjp")
+    ct_q, ct_v = kernel.batched(*rows, row(saved), row(status), row(cotangent_q), row(cotangent_v), row(cotangent_work))
+    return ct_q[0], ct_v[0]
 
 
 # ----------------------------------------------------------------------------- energies

@@ -9,6 +9,14 @@ means ``jb.scene(model)``: the model's own gravity, springs and dampers; any oth
 the simulation protocol is wrapped as is). It returns a :class:`Solution` pytree. ``jit``,
 ``vmap`` and ``grad`` (through diffrax's adjoints) pass through.
 
+A fixed-step ``"rk4"`` solve on the native kernel that keeps only its end state
+(``saveat=SaveAt(t1=True)``), of a scene of gravity, joint springs and joint dampers, without
+an event, runs as one native call (:func:`jaxbody.native.rk4_rollout`) instead of diffrax's
+loop. Its solution is the one diffrax's loop gives (the same steps, failures and result codes).
+Its gradient with respect to the initial state is a native reverse sweep
+(:func:`jaxbody.native.rk4_rollout_vjp`); other derivatives go through diffrax's loop.
+``$JAXBODY_NATIVE_SOLVE=0`` turns this off.
+
 Errors come in three layers. Shapes, unknown names and impossible options raise ``ValueError``
 before anything is traced. Values (NaN or infinite initial states or parameters, negative
 masses, initial velocities that violate the scene's constraints) are checked once at this
@@ -40,6 +48,7 @@ import dataclasses
 import functools
 import json
 import math
+import os
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol
 
@@ -50,6 +59,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 from jax import lax
+from jax.custom_derivatives import SymbolicZero
 
 from . import maggi
 
@@ -192,14 +202,12 @@ def _native_rk4_step(terms, args, y0):
     exactly what the four stages would: ``simulate``'s own vector field (not the augmented one of
     a backsolve adjoint) for a scene whose forward dynamics is the native kernel and whose
     effects are gravity, joint dampers and joint springs: nothing that depends on time. Returns ``(t0, t1, y0) -> (y1, k)`` or ``None``."""
-    from .effects import Gravity, JointDampers, JointSprings
-    from .kernels import resolve_kernel
     from .native import rk4_step
 
     inner = terms
     while type(inner) is diffrax._term.WrapTerm:  # diffrax's wrapper for the direction of time
         inner = inner.term
-    if type(inner) is not diffrax.ODETerm or not isinstance(y0, tuple) or len(y0) not in (2, 3):
+    if type(inner) is not diffrax.ODETerm:
         return None
     field = inner.vector_field
     if field is _vector_field:
@@ -211,23 +219,10 @@ def _native_rk4_step(terms, args, y0):
     if not (isinstance(args, tuple) and len(args) == 2 and isinstance(args[0], Scene)):
         return None
     scene, valid = args
-    effects = scene.effects
-    if not scene._direct() or not all(isinstance(e, (Gravity, JointDampers, JointSprings)) for e in effects):
+    plan = _native_field(scene, y0, slots)
+    if plan is None:
         return None
-    springs = [e for e in effects if isinstance(e, JointSprings)]
-    dampers = [e for e in effects if isinstance(e, JointDampers)]
-    if len(springs) > 1 or len(dampers) > 1 or resolve_kernel(scene.system, getattr(scene, "kernel", None)) != "native":
-        return None
-    model = scene.system
-    if len(y0) == 3 and (not slots or not dampers or len(slots) != 1):
-        return None  # a work vector whose slots are not the dampers' alone
-    dtype = y0[1].dtype
-    gravity = scene._gravity(dtype)  # None: no field (rk4_step's default)
-    passive = {}
-    if springs:
-        passive.update(stiffness=springs[0].stiffness, reference=springs[0].reference)
-    if dampers:
-        passive.update(damping=dampers[0].damping)
+    model, gravity, passive = plan
 
     def fused(t0, t1, y0):
         # the field does not depend on time: the step is the term's control (t1 - t0, signed)
@@ -245,6 +240,35 @@ def _native_rk4_step(terms, args, y0):
         return y1, k
 
     return fused
+
+
+def _native_field(scene, y0, slots):
+    """``(model, gravity, passive)`` where the native RK4 programs compute ``scene``'s vector field
+    on the state ``y0 = (q, v[, w])`` exactly (:func:`jaxbody.native.rk4_step`'s arguments):
+    the native kernel, and effects that are a uniform gravity field, joint dampers and joint
+    springs (nothing that depends on time); a work vector ``w`` must hold the dampers' work
+    alone (``slots``). ``None`` otherwise."""
+    from .effects import Gravity, JointDampers, JointSprings
+    from .kernels import resolve_kernel
+
+    if not isinstance(y0, tuple) or len(y0) not in (2, 3):
+        return None
+    effects = scene.effects
+    if not scene._direct() or not all(isinstance(e, (Gravity, JointDampers, JointSprings)) for e in effects):
+        return None
+    springs = [e for e in effects if isinstance(e, JointSprings)]
+    dampers = [e for e in effects if isinstance(e, JointDampers)]
+    if len(springs) > 1 or len(dampers) > 1 or resolve_kernel(scene.system, getattr(scene, "kernel", None)) != "native":
+        return None
+    if len(y0) == 3 and (not slots or not dampers or len(slots) != 1):
+        return None  # a work vector whose slots are not the dampers' alone
+    gravity = scene._gravity(y0[1].dtype)  # None: no field (rk4_step's default)
+    passive = {}
+    if springs:
+        passive.update(stiffness=springs[0].stiffness, reference=springs[0].reference)
+    if dampers:
+        passive.update(damping=dampers[0].damping)
+    return scene.system, gravity, passive
 
 
 def _runs_unrolled_kernel(scene) -> bool:
@@ -1269,8 +1293,10 @@ def _reason(code: int) -> str:
 
 
 @eqx.filter_jit
-def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps, adjoint, meter, event, layout, dense,
-           slots, work_names):
+def _integrate(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps, adjoint, meter, event, dense, slots):
+    """The step-by-step solve (diffrax): ``(ts, ys, tf, yf, stats, result)`` (saved times and
+    states, the final time and state as arrays of one entry, the step counts and the result,
+    each trajectory's failure applied) and diffrax's solution."""
     main = saveat.subs if saveat.subs is not None else diffrax.SubSaveAt(ts=saveat.ts, t0=saveat.t0, t1=saveat.t1, steps=saveat.steps)
     # the end state is saved separately, except with backsolve (which takes no SaveAt(subs=...))
     # and when the saved times include t1 (diffrax saves the state the solve ended in there, at
@@ -1307,6 +1333,168 @@ def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps,
         ts, ys, tf, stats, result = _apply_failure(failure, ts, ys, tf, stats, result, single and main.t1)
         if single:
             yf = ys
+    return (ts, ys, tf, yf, stats, result), sol
+
+
+#: ``$JAXBODY_NATIVE_SOLVE=0`` turns the one-call solve (:func:`_native_solve`) off: every
+#: ``simulate`` then steps through diffrax's loop (read when a solve is traced).
+def _native_solve_enabled() -> bool:
+    return os.environ.get("JAXBODY_NATIVE_SOLVE", "1") != "0"
+
+
+def _native_solve_plan(scene, y0, solver, controller, saveat, adjoint, meter, event, dense, slots):
+    """Whether a solve can run as one native call (:func:`jaxbody.native.rk4_rollout`): RK4 at
+    constant steps on a scene whose field the native programs compute (:func:`_native_field`),
+    saving the end state alone, without an event, dense output or progress meter, under an
+    adjoint that differentiates in reverse mode. Returns :func:`_native_field`'s plan or ``None``."""
+    if not _native_solve_enabled():
+        return None
+    if type(solver) is not _Guarded or not solver.record or type(solver.solver) is not RK4Stages:
+        return None
+    if type(controller) is not diffrax.ConstantStepSize or event is not None or dense:
+        return None
+    if not isinstance(meter, diffrax.NoProgressMeter) or isinstance(adjoint, diffrax.ForwardMode):
+        return None
+    main = saveat.subs if saveat.subs is not None else diffrax.SubSaveAt(ts=saveat.ts, t0=saveat.t0, t1=saveat.t1, steps=saveat.steps)
+    if not isinstance(main, diffrax.SubSaveAt) or not main.t1 or main.t0 or main.ts is not None or main.steps:
+        return None
+    if main.fn is not diffrax._saveat.save_y:
+        return None
+    return _native_field(scene, y0, slots)
+
+
+def _native_arguments(scene, y0, valid, slots) -> tuple:
+    """``(model, keyword arguments)`` of :func:`jaxbody.native.rk4_rollout` for a solve of ``scene``
+    from ``y0`` (:func:`_native_field`)."""
+    model, gravity, passive = _native_field(scene, y0, slots)
+    kwargs = dict(gravity=gravity, frozen=False if valid is None else ~valid, **passive)
+    return model, kwargs
+
+
+def _forward_in_time(t0, t1, dt0):
+    """``t1``, checked to be no earlier than ``t0`` (the native solve steps forward only; diffrax
+    raises on the same times)."""
+    return eqx.error_if(t1, (t1 - t0) * dt0 < 0, "simulate: t1 must not be before t0 (a fixed-step solve runs forward)")
+
+
+def _native_outputs(y0, t1, slots, q, v, w, t, steps, failed) -> tuple:
+    """:func:`_integrate`'s outputs for a solve that saves the end state alone, from the native
+    solve's results."""
+    dtype = y0[0].dtype
+    ys = (q[None], v[None]) + ((y0[2].at[slots[0]].set(w.astype(dtype))[None],) if len(y0) == 3 else ())
+    ts = t.astype(dtype)[None]
+    stats = {"num_steps": steps, "num_accepted_steps": steps, "num_rejected_steps": jnp.asarray(0)}  # as diffrax gives it
+    result = RESULTS.where(t < t1, RESULTS.max_steps_reached, RESULTS.successful)
+    result = RESULTS.where(failed, RESULTS.nonfinite, result)
+    return ts, ys, ts, ys, stats, result
+
+
+def _native_solve(scene, y0, t0, t1, dt0, valid, max_steps, slots):
+    """The solve of :func:`_integrate` as one native call per batch (:func:`jaxbody.native.rk4_rollout`)."""
+    from .native import rk4_rollout
+
+    model, kwargs = _native_arguments(scene, y0, valid, slots)
+    w0 = y0[2][slots[0]] if len(y0) == 3 else 0.0
+    t1 = _forward_in_time(t0, t1, dt0)
+    out = rk4_rollout(model, y0[0], y0[1], t0, t1, dt0, max_steps, work0=w0, **kwargs)
+    return _native_outputs(y0, t1, slots, *out)
+
+
+def _instantiate(cotangent):
+    """A cotangent given as ``SymbolicZero`` as an array of zeros."""
+    if isinstance(cotangent, SymbolicZero):
+        return jnp.zeros(cotangent.aval.shape, cotangent.aval.dtype)
+    return cotangent
+
+
+def _native_or_stepped(rest, y0, native, stepped, reverse):
+    """``native(rest, y0)``, differentiated in reverse mode by ``reverse`` where only ``y0``
+    carries a derivative and ``reverse`` is given, else as ``stepped(rest, y0)`` (the same
+    values, computed step by step through diffrax: its adjoint, its checkpoints).
+
+    ``reverse``: ``(forward, backward)``: ``forward(rest, y0) -> (outputs, residuals)`` and
+    ``backward(residuals, cotangents) -> cotangent of y0``."""
+    dynamic, static = eqx.partition(rest, eqx.is_array)
+
+    @jax.custom_vjp
+    def run(dynamic, y0):
+        return native(eqx.combine(dynamic, static), y0)
+
+    def forward(dynamic, y0):
+        values = jax.tree.map(lambda p: p.value, dynamic)
+        y0_values = jax.tree.map(lambda p: p.value, y0)
+        if reverse is not None and not any(p.perturbed for p in jax.tree.leaves(dynamic)):
+            out, residuals = reverse[0](eqx.combine(values, static), y0_values)
+            return out, (None, residuals)
+        out, pullback = jax.vjp(lambda d, y: stepped(eqx.combine(d, static), y), values, y0_values)
+        return out, (pullback, None)
+
+    def backward(residuals, cotangents):
+        pullback, native_residuals = residuals
+        if pullback is None:
+            return None, reverse[1](native_residuals, cotangents)
+        return pullback(jax.tree.map(_instantiate, cotangents, is_leaf=lambda c: isinstance(c, SymbolicZero)))
+
+    run.defvjp(forward, backward, symbolic_zeros=True)
+    return run(dynamic, y0)
+
+
+def _native_reverse(max_steps, slots, y0):
+    """``(forward, backward)`` of :func:`_native_or_stepped` by the native reverse sweep
+    (:func:`jaxbody.native.rk4_rollout_vjp`): the solve keeps checkpoints within the default
+    adjoint's memory budget (:func:`default_checkpoints`); ``None`` without a bounded step budget."""
+    from .native import rk4_rollout_checkpointed, rk4_rollout_vjp
+
+    if max_steps is None:
+        return None
+    n_state = y0[0].size + y0[1].size
+    checkpoints = default_checkpoints(max_steps, n_state, y0[0].dtype.itemsize)
+
+    def forward(rest, y0):
+        scene, t0, t1, dt0, valid = rest[:5]
+        model, kwargs = _native_arguments(scene, y0, valid, slots)
+        w0 = y0[2][slots[0]] if len(y0) == 3 else 0.0
+        t1 = _forward_in_time(t0, t1, dt0)
+        *out, saved = rk4_rollout_checkpointed(model, y0[0], y0[1], t0, t1, dt0, max_steps, checkpoints, work0=w0,
+                                               **kwargs)
+        return _native_outputs(y0, t1, slots, *out), (rest, y0, saved, out[4])
+
+    def backward(residuals, cotangents):
+        (scene, t0, t1, dt0, valid, *_), y0, saved, steps = residuals
+        _, ys, _, yf, _, _ = cotangents
+        # the end state is both the saved point and the final state
+        ct = [_instantiate(a)[0] + _instantiate(b)[0] for a, b in zip(ys, yf)]
+        model, kwargs = _native_arguments(scene, y0, valid, slots)
+        work = ct[2][slots[0]] if len(y0) == 3 else 0.0
+        ct_q, ct_v = rk4_rollout_vjp(model, y0[0], y0[1], t0, t1, dt0, max_steps, checkpoints, saved, steps, ct[0],
+                                     ct[1], work, **kwargs)
+        return (ct_q, ct_v) + ((ct[2],) if len(y0) == 3 else ())
+
+    return forward, backward
+
+
+def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps, adjoint, meter, event, layout, dense,
+           slots, work_names):
+    plan = _native_solve_plan(scene, y0, solver, controller, saveat, adjoint, meter, event, dense, slots)
+    sol = None
+    if plan is None:
+        (ts, ys, tf, yf, stats, result), sol = _integrate(scene, y0, t0, t1, valid, solver, controller, dt0, saveat,
+                                                          max_steps, adjoint, meter, event, dense, slots)
+    else:
+        # one native call; derivatives by the native reverse sweep (initial state alone) or
+        # through the step-by-step solve
+        def stepped(rest, y0):
+            scene, t0, t1, dt0, valid, solver, controller, adjoint = rest
+            return _integrate(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps, adjoint, meter,
+                              event, dense, slots)[0]
+
+        def native(rest, y0):
+            scene, t0, t1, dt0, valid = rest[:5]
+            return _native_solve(scene, y0, t0, t1, dt0, valid, max_steps, slots)
+
+        rest = (scene, t0, t1, dt0, valid, solver, controller, adjoint)
+        reverse = _native_reverse(max_steps, slots, y0) if isinstance(adjoint, diffrax.RecursiveCheckpointAdjoint) else None
+        ts, ys, tf, yf, stats, result = _native_or_stepped(rest, y0, native, stepped, reverse)
     q, v = ys[0], ys[1]
     finite = jnp.all(jnp.isfinite(q), axis=-1) & jnp.all(jnp.isfinite(v), axis=-1)
     work = {}
@@ -1339,11 +1527,14 @@ def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps,
         # Λ does not depend on the coordinate partition: each state with its best-conditioned one
         lam = jax.vmap(lambda tt, a, b: with_best_partition(scene, tt, a, b).evaluate(tt, a, b)[2])(t_safe, qs, vs)
         reactions = jnp.where(finite[:, None], lam, jnp.nan)
-    stats["num_repartitions"], repartition_times, result = _partition_outcome(solver, sol, result)
+    if sol is None:
+        stats["num_repartitions"], repartition_times = jnp.zeros((), jnp.int32), None
+    else:
+        stats["num_repartitions"], repartition_times, result = _partition_outcome(solver, sol, result)
     out = Solution(
         t=ts, q=q, v=v, energy=energy, work=work, energy_drift=drift, constraint_drift=cdrift,
         reactions=reactions, stats=stats, result=result, t_final=tf[-1], q_final=yf[0][-1], v_final=yf[1][-1], layout=layout,
-        interpolation=sol.interpolation if dense else None, repartition_times=repartition_times, energy0=energy0,
+        interpolation=sol.interpolation if dense and sol is not None else None, repartition_times=repartition_times, energy0=energy0,
     )
     return out, (yf[2][-1] if len(yf) == 3 else None)
 

@@ -1,0 +1,201 @@
+"""A whole fixed-step RK4 solve in one native call, and its native reverse sweep.
+
+``jb.simulate(..., solver="rk4", dt0=..., saveat=SaveAt(t1=True))`` on the native kernel runs
+the solve as one call (``jaxbody.native.rk4_rollout``): every field of the solution must equal
+the step-by-step solve through diffrax (``$JAXBODY_NATIVE_SOLVE=0``) and the vectorised
+kernel, including each trajectory's own outcome in a batch (invalid input, a non-finite step,
+the step budget). Gradients with respect to the initial state come from the native reverse
+sweep (``jaxbody.native.rk4_rollout_vjp``, with recomputed segments when the checkpoints do not
+hold every step); every other gradient through the step-by-step solve.
+"""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxbody as jb
+from jaxbody import native, simulation
+
+pytestmark = pytest.mark.filterwarnings("ignore:from_mjcf")
+
+
+def _models():
+    from random_models import hinge_chain, random_model
+
+    chain = hinge_chain(3)
+    chain = eqx.tree_at(lambda m: (m.joint_stiffness, m.dof_damping), chain,
+                        (jnp.full(chain.joints.n_joint, 2.0), jnp.full(chain.nv, 0.3)))
+    tree = random_model(0, n_body=2, kinds=("ball",))  # a free base and a ball joint: 9 DoFs
+    tree = eqx.tree_at(lambda m: m.dof_damping, tree, jnp.full(tree.nv, 0.2))
+    return {"chain": chain, "free_ball": tree}
+
+
+def _state(model, seed=0):
+    rng = np.random.default_rng(seed)
+    q = jb.normalize_qpos(model, jnp.asarray(model.qpos0) + 0.3 * rng.standard_normal(model.nq))
+    return q, jnp.asarray(rng.standard_normal(model.nv))
+
+
+def _solve(scene, q0, v0, t1=0.2, **kw):
+    return jb.simulate(scene, q0, v0, t1, solver="rk4", dt0=1e-2, saveat=diffrax.SaveAt(t1=True), **kw)
+
+
+def _leaves_close(a, b, tol):
+    la, ta = jax.tree.flatten(a)
+    lb, tb = jax.tree.flatten(b)
+    assert ta == tb
+    for x, y in zip(la, lb):
+        x, y = np.asarray(x), np.asarray(y)
+        assert x.shape == y.shape and x.dtype == y.dtype, (x, y)
+        if np.issubdtype(x.dtype, np.inexact):
+            assert np.array_equal(np.isfinite(x), np.isfinite(y)), (x, y)
+            finite = np.isfinite(x)
+            scale = max(1.0, float(np.max(np.abs(y[finite]), initial=0.0)))
+            assert float(np.max(np.abs(x[finite] - y[finite]), initial=0.0)) <= tol * scale, (x, y)
+        else:
+            assert np.array_equal(x, y), (x, y)
+
+
+def _stepped(monkeypatch):
+    monkeypatch.setenv("JAXBODY_NATIVE_SOLVE", "0")
+
+
+@pytest.mark.parametrize("name", ["chain", "free_ball"])
+def test_native_solve_equals_the_stepped_solve(name, monkeypatch):
+    """Gravity, springs and dampers (with their work): the one-call solve equals diffrax's
+    step-by-step solve on the same kernel (every field of the solution) and the vectorised
+    kernel; inside the jitted program there is no loop left, only the native call."""
+    model = _models()[name]
+    calls = []
+    rollout = native.rk4_rollout
+    monkeypatch.setattr(native, "rk4_rollout", lambda *a, **kw: calls.append(1) or rollout(*a, **kw))
+    fast = jb.scene(model, kernel="native", planar=False)
+    q0, v0 = _state(model)
+    a = _solve(fast, q0, v0)
+    assert calls, "simulate did not take the native solve"
+    assert int(a.stats["num_steps"]) == 20 and a.work["dampers"][-1] < 0
+    jaxpr = jax.make_jaxpr(lambda q, v: _solve(fast, q, v, throw=False).q)(q0, v0)
+    assert "while" not in str(jaxpr)
+    with pytest.raises(Exception, match="t1 must not be before t0"):  # traced: diffrax raises too
+        jax.block_until_ready(jax.jit(lambda t1: _solve(fast, q0, v0, t1, throw=False).q)(jnp.asarray(-0.1)))
+
+    _stepped(monkeypatch)
+    calls.clear()
+    b = _solve(fast, q0, v0)
+    assert not calls
+    _leaves_close(a, b, 1e-12)
+    c = _solve(jb.scene(model, kernel="vectorised", planar=False), q0, v0)
+    _leaves_close((a.q, a.v, a.work, a.t), (c.q, c.v, c.work, c.t), 1e-10)
+
+
+def test_native_solve_batch_outcomes_equal_the_stepped_solve(monkeypatch):
+    """A vmap batch, each member with its own end time, ``throw=False``: an invalid input (NaN),
+    a member whose steps overflow (non-finite), members the step budget stops, and members that
+    finish: result codes, times, final states and step counts as the step-by-step solve gives them."""
+    model = _models()["free_ball"]
+    scene = jb.scene(model, kernel="native", planar=False)
+    q0, v0 = _state(model)
+    rng = np.random.default_rng(1)
+    vs = jnp.asarray(rng.standard_normal((9, model.nv)))
+    vs = vs.at[2, 0].set(jnp.nan).at[4].multiply(1e150)
+    qs = jnp.tile(q0, (9, 1))
+    t1s = jnp.linspace(0.05, 0.4, 9)
+
+    def run():
+        return jax.jit(jax.vmap(lambda q, v, t1: _solve(scene, q, v, t1, throw=False, max_steps=30)))(qs, vs, t1s)
+
+    a = run()
+    _stepped(monkeypatch)
+    b = run()
+    codes = a.result._value.tolist()
+    R = jb.RESULTS
+    assert codes[2] == int(R.invalid_input._value) and codes[4] == int(R.nonfinite._value)
+    assert codes[0] == int(R.successful._value) and codes[-1] == int(R.max_steps_reached._value)
+    _leaves_close(a, b, 1e-12)
+
+
+def _gradient_setup(name, monkeypatch):
+    model = _models()[name]
+    scene = jb.scene(model, kernel="native", planar=False)
+    q0, v0 = _state(model, 2)
+
+    def loss(q, v):
+        sol = _solve(scene, q, v)
+        return jnp.sum(jnp.sin(sol.q[-1])) + jnp.sum(sol.v[-1] ** 2) + 3.0 * sol.work["dampers"][-1]
+
+    calls = []
+    sweep = native.rk4_rollout_vjp
+    monkeypatch.setattr(native, "rk4_rollout_vjp", lambda *a, **kw: calls.append(1) or sweep(*a, **kw))
+    return model, loss, q0, v0, calls
+
+
+def test_native_reverse_sweep_gradient_equals_the_stepped_solve(monkeypatch):
+    """The gradient with respect to (q0, v0), through the native reverse sweep, equals the
+    step-by-step solve's checkpointed adjoint, with a checkpoint per step and with segments
+    recomputed from fewer checkpoints; batched under vmap too."""
+    model, loss, q0, v0, calls = _gradient_setup("chain", monkeypatch)
+    grad = lambda: jax.jit(jax.grad(loss, argnums=(0, 1)))(q0, v0)  # noqa: E731
+    every_step = grad()
+    assert calls, "the gradient did not take the native reverse sweep"
+    # three checkpoints for 20 steps: segments of 8 steps recomputed
+    monkeypatch.setattr(simulation, "CHECKPOINT_BYTES", 3 * 3 * (model.nq + model.nv) * 8)
+    assert simulation.default_checkpoints(22, model.nq + model.nv) < 20
+    segments = grad()
+    batched = jax.jit(jax.vmap(jax.grad(loss, argnums=(0, 1))))(jnp.stack([q0, q0]), jnp.stack([v0, -v0]))
+    _stepped(monkeypatch)
+    calls.clear()
+    reference = grad()
+    assert not calls
+    assert float(jnp.max(jnp.abs(reference[1]))) > 1e-3
+    _leaves_close(every_step, reference, 1e-10)
+    _leaves_close(segments, reference, 1e-10)
+    _leaves_close(tuple(x[1] for x in batched), jax.jit(jax.grad(loss, argnums=(0, 1)))(q0, -v0), 1e-10)
+
+
+def test_native_reverse_sweep_gradient_of_a_free_base_against_finite_differences(monkeypatch):
+    """The free base with a ball joint (the quaternions' renormalisation after each step, in the
+    sweep too): the gradient with respect to (q0, v0) against central differences of the
+    native solve itself, along every coordinate."""
+    model, loss, q0, v0, calls = _gradient_setup("free_ball", monkeypatch)
+    gq, gv = jax.jit(jax.grad(loss, argnums=(0, 1)))(q0, v0)
+    assert calls, "the gradient did not take the native reverse sweep"
+    x0 = jnp.concatenate([q0, v0])
+    eps = 1e-6
+    shifts = eps * jnp.concatenate([jnp.eye(x0.size), -jnp.eye(x0.size)])
+    values = jax.jit(jax.vmap(lambda d: loss((x0 + d)[: model.nq], (x0 + d)[model.nq :])))(shifts)
+    fd = (values[: x0.size] - values[x0.size :]) / (2 * eps)
+    g = jnp.concatenate([gq, gv])
+    assert float(jnp.max(jnp.abs(g))) > 1e-2
+    assert float(jnp.max(jnp.abs(g - fd))) <= 1e-6 * max(1.0, float(jnp.max(jnp.abs(fd)))), (g, fd)
+
+
+def test_native_solve_parameter_gradient_goes_step_by_step():
+    """A gradient with respect to the model's parameters comes from the step-by-step solve: it
+    equals the vectorised kernel's. (Forward mode, ``adjoint=ForwardMode()``, never takes the
+    native solve: test_native_step.py's rollout gradient.)"""
+    model = _models()["chain"]
+    q0, v0 = _state(model, 3)
+
+    def loss(m, kernel, **kw):
+        sol = _solve(jb.scene(m, kernel=kernel, planar=False), q0, v0, **kw)
+        return jnp.sum(sol.q[-1] ** 2) + jnp.sum(sol.v[-1] ** 2)
+
+    mass = lambda m: m.body_mass  # noqa: E731
+    g = [eqx.filter_jit(eqx.filter_grad(lambda m, k=k: loss(m, k)))(model) for k in ("native", "vectorised")]
+    _leaves_close(mass(g[0]), mass(g[1]), 1e-10)
+    assert float(jnp.max(jnp.abs(mass(g[1])))) > 1e-4
+
+
+def test_native_solve_in_float32_stays_near_float64():
+    """The one-call solve in float32 (a float32 model and state) stays within 1e-4 of float64."""
+    model = _models()["free_ball"]
+    q0, v0 = _state(model, 4)
+    m32 = jax.tree.map(lambda x: x.astype(jnp.float32) if jnp.issubdtype(x.dtype, jnp.floating) else x, model)
+    a = _solve(jb.scene(model, kernel="native", planar=False), q0, v0)
+    b = _solve(jb.scene(m32, kernel="native", planar=False), q0.astype(jnp.float32), v0.astype(jnp.float32))
+    assert b.q.dtype == jnp.float32 and bool(b.success)
+    assert float(jnp.max(jnp.abs(b.q.astype(jnp.float64) - a.q))) <= 1e-4
+    assert float(jnp.max(jnp.abs(b.v.astype(jnp.float64) - a.v))) <= 1e-4 * max(1.0, float(jnp.max(jnp.abs(a.v))))
