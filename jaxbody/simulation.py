@@ -1087,7 +1087,8 @@ def _simulate_scene(
         y0 = (q0, v0)
     meter = _progress_meter(progress)
     sol, w_final = _solve(scene, y0, t0, t1, valid, solver_obj, controller, dt0, saveat, max_steps, adjoint, meter,
-                          _make_event(event, q0.dtype), _layout(scene), dense, slots, tuple(work_names))
+                          _make_event(event, q0.dtype), _layout(scene), dense, slots, tuple(work_names),
+                          _native_solve_enabled())
     if correction is not None:
         sol = dataclasses.replace(sol, stats={**sol.stats, "v0_correction": correction})
     if valid is not None:
@@ -1292,7 +1293,6 @@ def _reason(code: int) -> str:
     return RESULTS._index_to_message[code]
 
 
-@eqx.filter_jit
 def _integrate(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps, adjoint, meter, event, dense, slots):
     """The step-by-step solve (diffrax): ``(ts, ys, tf, yf, stats, result)`` (saved times and
     states, the final time and state as arrays of one entry, the step counts and the result,
@@ -1347,8 +1347,6 @@ def _native_solve_plan(scene, y0, solver, controller, saveat, adjoint, meter, ev
     constant steps on a scene whose field the native programs compute (:func:`_native_field`),
     saving the end state alone, without an event, dense output or progress meter, under an
     adjoint that differentiates in reverse mode. Returns :func:`_native_field`'s plan or ``None``."""
-    if not _native_solve_enabled():
-        return None
     if type(solver) is not _Guarded or not solver.record or type(solver.solver) is not RK4Stages:
         return None
     if type(controller) is not diffrax.ConstantStepSize or event is not None or dense:
@@ -1439,16 +1437,18 @@ def _native_or_stepped(rest, y0, native, stepped, reverse):
     return run(dynamic, y0)
 
 
-def _native_reverse(max_steps, slots, y0):
+def _native_reverse(adjoint, max_steps, slots, y0):
     """``(forward, backward)`` of :func:`_native_or_stepped` by the native reverse sweep
-    (:func:`jaxbody.native.rk4_rollout_vjp`): the solve keeps checkpoints within the default
-    adjoint's memory budget (:func:`default_checkpoints`); ``None`` without a bounded step budget."""
+    (:func:`jaxbody.native.rk4_rollout_vjp`): the solve keeps as many checkpoints as the
+    checkpointed ``adjoint`` would (default: :func:`default_checkpoints`, within its memory
+    budget); ``None`` without a bounded step budget."""
     from .native import rk4_rollout_checkpointed, rk4_rollout_vjp
 
     if max_steps is None:
         return None
-    n_state = y0[0].size + y0[1].size
-    checkpoints = default_checkpoints(max_steps, n_state, y0[0].dtype.itemsize)
+    checkpoints = adjoint.checkpoints
+    if checkpoints is None:
+        checkpoints = default_checkpoints(max_steps, y0[0].size + y0[1].size, y0[0].dtype.itemsize)
 
     def forward(rest, y0):
         scene, t0, t1, dt0, valid = rest[:5]
@@ -1473,9 +1473,15 @@ def _native_reverse(max_steps, slots, y0):
     return forward, backward
 
 
+@eqx.filter_jit
 def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps, adjoint, meter, event, layout, dense,
-           slots, work_names):
-    plan = _native_solve_plan(scene, y0, solver, controller, saveat, adjoint, meter, event, dense, slots)
+           slots, work_names, native_solve):
+    """The solve and the solution's fields. ``native_solve``: whether a solve may run as one
+    native call (:func:`_native_solve_enabled`, read by the caller so that it keys the compiled
+    program)."""
+    plan = None
+    if native_solve:
+        plan = _native_solve_plan(scene, y0, solver, controller, saveat, adjoint, meter, event, dense, slots)
     sol = None
     if plan is None:
         (ts, ys, tf, yf, stats, result), sol = _integrate(scene, y0, t0, t1, valid, solver, controller, dt0, saveat,
@@ -1493,7 +1499,7 @@ def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps,
             return _native_solve(scene, y0, t0, t1, dt0, valid, max_steps, slots)
 
         rest = (scene, t0, t1, dt0, valid, solver, controller, adjoint)
-        reverse = _native_reverse(max_steps, slots, y0) if isinstance(adjoint, diffrax.RecursiveCheckpointAdjoint) else None
+        reverse = _native_reverse(adjoint, max_steps, slots, y0) if isinstance(adjoint, diffrax.RecursiveCheckpointAdjoint) else None
         ts, ys, tf, yf, stats, result = _native_or_stepped(rest, y0, native, stepped, reverse)
     q, v = ys[0], ys[1]
     finite = jnp.all(jnp.isfinite(q), axis=-1) & jnp.all(jnp.isfinite(v), axis=-1)

@@ -22,6 +22,13 @@ from jaxbody import native, simulation
 pytestmark = pytest.mark.filterwarnings("ignore:from_mjcf")
 
 
+@pytest.fixture(autouse=True)
+def _fresh_traces():
+    """The tests count native calls while a solve is traced: no compiled program carried over."""
+    jax.clear_caches()
+    yield
+
+
 def _models():
     from random_models import hinge_chain, random_model
 
