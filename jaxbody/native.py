@@ -429,15 +429,20 @@ def _rk4_scalars(field, joints, q: list, v: list, h) -> tuple:
     return y1[0], y1[1], k1[0], k1[1], k4[0], k4[1], [work, k1[2], k4[2]]
 
 
-def _inputs(em: _Emitter, name: str, n: int, slot: int) -> list:
-    """``n`` scalars of operand ``slot``, loaded (one lane per state) where they are emitted."""
+def _declared(em: _Emitter, name: str, n: int, source) -> list:
+    """``n`` input scalars ``name_i`` of the program, declared as ``source(i)`` (a C++ expression)."""
     out = []
     for i in range(n):
-        em.lines.append(f"const U {name}_{i} = ld({slot}, {i});")
+        em.lines.append(f"const U {name}_{i} = {source(i)};")
         sym = _Sym(f"{name}_{i}", em)
         em.ops.append((sym, "input", (name,)))
         out.append(sym)
     return out
+
+
+def _inputs(em: _Emitter, name: str, n: int, slot: int) -> list:
+    """``n`` scalars of operand ``slot``, loaded (one lane per state) where they are emitted."""
+    return _declared(em, name, n, lambda i: f"ld({slot}, {i})")
 
 
 def _field_shapes(tree, joints):
@@ -1194,24 +1199,15 @@ def _generate_energy(tree, joints, dtype) -> str:
 def _source(em: _Emitter, results: list, dtype) -> str:
     """The kernel's C++ source: the emitted lines, then every result stored."""
 
-    def value(x):
-        return x.name if isinstance(x, _Sym) else f"U{{}} + T({float(x)!r})"
-
     body = ["  " + line for line in em.lines]
-    body += [f"  st({j}, {i}, {value(x)});" for j, xs in enumerate(results) for i, x in enumerate(xs)]
+    body += [f"  st({j}, {i}, {_symbol_value(x)});" for j, xs in enumerate(results) for i, x in enumerate(xs)]
     return _KERNEL.replace("@ACCESS@", _ACCESS).replace("@COMMON@", _COMMON.replace("@T@", _SCALAR[np.dtype(dtype)][0])).replace(
         "@BODY@", "\n".join(body))
 
 
 def _carried(em: _Emitter, name: str, n: int, array: str) -> list:
     """``n`` scalars read from the local array ``array`` (a loop's carried state)."""
-    out = []
-    for i in range(n):
-        em.lines.append(f"const U {name}_{i} = {array}[{i}];")
-        sym = _Sym(f"{name}_{i}", em)
-        em.ops.append((sym, "input", (name,)))
-        out.append(sym)
-    return out
+    return _declared(em, name, n, lambda i: f"{array}[{i}]")
 
 
 def _quaternion_coordinates(joints) -> list:
@@ -1260,55 +1256,52 @@ def _symbol_value(x) -> str:
     return x.name if isinstance(x, _Sym) else f"U{{}} + T({float(x)!r})"
 
 
-def _hoisted(em: _Emitter, lines: list) -> list:
-    """``lines`` without the operand loads already in ``em``'s first part (:func:`_run_operands`)."""
+def _hoisted(lines: list) -> list:
+    """``lines`` without operand loads (:func:`_run_operands` puts them before the loop)."""
     return [line for line in lines if " = ld(" not in line]
+
+
+def _run_program(tree, joints, derivative=None) -> tuple:
+    """One step of a whole solve on the carried state ``qc``, ``vc`` (:func:`_run_step`):
+    ``(emitter, operand loads, step lines, (q, v), (q1, v1, Δw))``, the step lines ending in
+    the stores of ``q1``, ``v1`` to ``qn``, ``vn``."""
+    em = _Emitter()
+    operands = _run_operands(em, tree, joints)
+    invariant = len(em.lines)
+    q = _carried(em, "q", joints.nq, "qc")
+    v = _carried(em, "v", joints.nv, "vc")
+    q1, v1, dw = _run_step(em, joints, operands, q, v, _Sym("h", em), derivative)
+    step = em.lines[invariant:]
+    step += [f"qn[{i}] = {_symbol_value(x)};" for i, x in enumerate(q1)]
+    step += [f"vn[{i}] = {_symbol_value(x)};" for i, x in enumerate(v1)]
+    return em, em.lines[:invariant], step, (q, v), (q1, v1, dw)
 
 
 def _generate_run(tree, joints, dtype) -> str:
     """C++ source of a whole fixed-step RK4 solve (``"rk4_run"``, :data:`_RUN_BLOCK`): the
     step of :func:`_run_step` on the carried state, the operands loaded before the loop."""
-    em = _Emitter()
-    operands = _run_operands(em, tree, joints)
-    invariant = len(em.lines)
-    q = _carried(em, "q", joints.nq, "qc")
-    v = _carried(em, "v", joints.nv, "vc")
-    q1, v1, dw = _run_step(em, joints, operands, q, v, _Sym("h", em))
-    body = em.lines[invariant:]
-    body += [f"qn[{i}] = {_symbol_value(x)};" for i, x in enumerate(q1)]
-    body += [f"vn[{i}] = {_symbol_value(x)};" for i, x in enumerate(v1)]
-    body.append(f"dw = {_symbol_value(dw)};")
-    return _run_source(_RUN_BLOCK, em.lines[:invariant], {"BODY": body}, joints, dtype)
+    _, invariant, step, _, (_, _, dw) = _run_program(tree, joints)
+    return _run_source(_RUN_BLOCK, invariant, {"BODY": step + [f"dw = {_symbol_value(dw)};"]}, joints, dtype)
 
 
 def _generate_run_vjp(tree, joints, dtype) -> str:
     """C++ source of the reverse sweep of a whole solve (``"rk4_run_vjp"``, :data:`_RUN_VJP_BLOCK`):
     the same steps recomputed from the checkpoints, and the reverse-mode program of
-    :func:`_run_step` (cotangents of ``(q1, v1, Δw)`` to those of ``(q, v)``)."""
-    em = _Emitter()
-    operands = _run_operands(em, tree, joints)
-    invariant = len(em.lines)
-    q = _carried(em, "q", joints.nq, "qc")
-    v = _carried(em, "v", joints.nv, "vc")
-    q1, v1, dw = _run_step(em, joints, operands, q, v, _Sym("h", em))
-    step = em.lines[invariant:]
-    step += [f"qn[{i}] = {_symbol_value(x)};" for i, x in enumerate(q1)]
-    step += [f"vn[{i}] = {_symbol_value(x)};" for i, x in enumerate(v1)]
-
-    rev = _Emitter()
-    operands = _run_operands(rev, tree, joints)
-    q = _carried(rev, "q", joints.nq, "bq")
-    v = _carried(rev, "v", joints.nv, "bv")
-    q1, v1, dw = _run_step(rev, joints, operands, q, v, _Sym("h", rev), derivative="vjp")
+    :func:`_run_step` (cotangents of ``(q1, v1, Δw)`` to those of ``(q, v)``) on a kept state
+    (``bq``, ``bv``)."""
+    _, invariant, step, _, _ = _run_program(tree, joints)
+    rev, _, _, (q, v), (q1, v1, dw) = _run_program(tree, joints, derivative="vjp")
     primal = list(rev.ops)
     cq = _carried(rev, "cq", joints.nq, "aq")
     cv = _carried(rev, "cv", joints.nv, "av")
     pairs = list(zip(q1, cq)) + list(zip(v1, cv)) + [(dw, _Sym("aw", rev))]
     adj = _adjoint_program(primal, _active(primal, {"q", "v"}), pairs)
-    body = _hoisted(rev, rev.lines[invariant:])
+    # the kept state's reads, then the step's operations and their adjoints
+    body = [f"const U q_{i} = bq[{i}];" for i in range(joints.nq)] + [f"const U v_{i} = bv[{i}];" for i in range(joints.nv)]
+    body += _hoisted(rev.lines[len(invariant) + joints.nq + joints.nv :])
     body += [f"rq[{i}] = {_symbol_value(adj.get(x.name, 0.0))};" for i, x in enumerate(q)]
     body += [f"rv[{i}] = {_symbol_value(adj.get(x.name, 0.0))};" for i, x in enumerate(v)]
-    return _run_source(_RUN_VJP_BLOCK, em.lines[:invariant], {"STEP": step, "BODY": body}, joints, dtype)
+    return _run_source(_RUN_VJP_BLOCK, invariant, {"STEP": step, "BODY": body}, joints, dtype)
 
 
 def _run_source(block: str, invariant: list, parts: dict, joints, dtype) -> str:

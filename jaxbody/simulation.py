@@ -1342,23 +1342,21 @@ def _native_solve_enabled() -> bool:
     return os.environ.get("JAXBODY_NATIVE_SOLVE", "1") != "0"
 
 
-def _native_solve_plan(scene, y0, solver, controller, saveat, adjoint, meter, event, dense, slots):
+def _native_solve_applies(scene, y0, solver, controller, saveat, adjoint, meter, event, dense, slots) -> bool:
     """Whether a solve can run as one native call (:func:`jaxbody.native.rk4_rollout`): RK4 at
     constant steps on a scene whose field the native programs compute (:func:`_native_field`),
     saving the end state alone, without an event, dense output or progress meter, under an
-    adjoint that differentiates in reverse mode. Returns :func:`_native_field`'s plan or ``None``."""
+    adjoint that differentiates in reverse mode."""
     if type(solver) is not _Guarded or not solver.record or type(solver.solver) is not RK4Stages:
-        return None
+        return False
     if type(controller) is not diffrax.ConstantStepSize or event is not None or dense:
-        return None
+        return False
     if not isinstance(meter, diffrax.NoProgressMeter) or isinstance(adjoint, diffrax.ForwardMode):
-        return None
+        return False
     main = saveat.subs if saveat.subs is not None else diffrax.SubSaveAt(ts=saveat.ts, t0=saveat.t0, t1=saveat.t1, steps=saveat.steps)
     if not isinstance(main, diffrax.SubSaveAt) or not main.t1 or main.t0 or main.ts is not None or main.steps:
-        return None
-    if main.fn is not diffrax._saveat.save_y:
-        return None
-    return _native_field(scene, y0, slots)
+        return False
+    return main.fn is diffrax._saveat.save_y and _native_field(scene, y0, slots) is not None
 
 
 def _native_arguments(scene, y0, valid, slots) -> tuple:
@@ -1479,11 +1477,10 @@ def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps,
     """The solve and the solution's fields. ``native_solve``: whether a solve may run as one
     native call (:func:`_native_solve_enabled`, read by the caller so that it keys the compiled
     program)."""
-    plan = None
-    if native_solve:
-        plan = _native_solve_plan(scene, y0, solver, controller, saveat, adjoint, meter, event, dense, slots)
+    native_solve = native_solve and _native_solve_applies(scene, y0, solver, controller, saveat, adjoint, meter, event,
+                                                          dense, slots)
     sol = None
-    if plan is None:
+    if not native_solve:
         (ts, ys, tf, yf, stats, result), sol = _integrate(scene, y0, t0, t1, valid, solver, controller, dt0, saveat,
                                                           max_steps, adjoint, meter, event, dense, slots)
     else:
