@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from jax.test_util import check_grads
 
 import jaxbody as jb
 from jaxbody import native, simulation
@@ -177,6 +178,8 @@ def test_native_reverse_sweep_gradient_of_a_free_base_against_finite_differences
     g = jnp.concatenate([gq, gv])
     assert float(jnp.max(jnp.abs(g))) > 1e-2
     assert float(jnp.max(jnp.abs(g - fd))) <= 1e-6 * max(1.0, float(jnp.max(jnp.abs(fd)))), (g, fd)
+    # and JAX's own check of the reverse mode along random directions
+    check_grads(loss, (q0, v0), order=1, modes=("rev",), eps=1e-6, atol=1e-6, rtol=1e-6)
 
 
 def test_native_solve_parameter_gradient_goes_step_by_step(monkeypatch):
