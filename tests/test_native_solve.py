@@ -182,6 +182,7 @@ def test_native_reverse_sweep_gradient_of_a_free_base_against_finite_differences
     check_grads(loss, (q0, v0), order=1, modes=("rev",), eps=1e-6, atol=1e-6, rtol=1e-6)
 
 
+@pytest.mark.slow  # about 10 s alone, 30 s in the parallel suite: the step-by-step gradient's compilation
 def test_native_solve_parameter_gradient_goes_step_by_step(monkeypatch):
     """A gradient with respect to the model's parameters comes from the step-by-step solve
     (not the native sweep), checked against central differences of the native solve along
