@@ -57,7 +57,7 @@ def measure(name, args, tmp):
             return kernels.acceleration(model, q, v, force, gravity=model.gravity, kernel=kernel)
 
         def f(q, v):
-            return model.qdot(q, v), acc(q, v)
+            return jb.kinematics.qpos_rate(model, q, v), acc(q, v)
 
         def step(_, y):
             q, v = y

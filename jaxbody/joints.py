@@ -30,6 +30,7 @@ from ._util import index, int_tuple
 from .tree import BodyTree
 
 __all__ = [
+    "JointSpec",
     "FREE",
     "BALL",
     "SLIDE",
@@ -86,7 +87,7 @@ JOINT_NV = {c: k.nv for c, k in JOINT_KINDS.items()}
 
 
 @dataclasses.dataclass(frozen=True)
-class _JointSpec:
+class JointSpec:
     """Common fields of a joint description used by :class:`jaxbody.ModelBuilder`.
 
     ``pos`` is the joint anchor and ``axis`` the joint axis, both in the body frame (as in
@@ -104,7 +105,7 @@ class _JointSpec:
 
 
 @dataclasses.dataclass(frozen=True)
-class Hinge(_JointSpec):
+class Hinge(JointSpec):
     """Rotation about ``axis`` through ``pos``; ``ref`` is the angle of the reference pose."""
 
     ref: ScalarLike = 0.0
@@ -113,7 +114,7 @@ class Hinge(_JointSpec):
 
 
 @dataclasses.dataclass(frozen=True)
-class Slide(_JointSpec):
+class Slide(JointSpec):
     """Translation along ``axis``; ``ref`` is the displacement of the reference pose."""
 
     ref: ScalarLike = 0.0
@@ -122,14 +123,14 @@ class Slide(_JointSpec):
 
 
 @dataclasses.dataclass(frozen=True)
-class Ball(_JointSpec):
+class Ball(JointSpec):
     """Spherical joint about ``pos``; q is a unit quaternion (w, x, y, z)."""
 
     kind: int = dataclasses.field(default=BALL, init=False)
 
 
 @dataclasses.dataclass(frozen=True)
-class Free(_JointSpec):
+class Free(JointSpec):
     """Six-DoF joint of a root body; q = (position, quaternion)."""
 
     kind: int = dataclasses.field(default=FREE, init=False)

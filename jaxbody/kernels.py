@@ -241,7 +241,7 @@ def forward_dynamics(
     """Accelerations ``a = M⁻¹ (tau - bias + Jᵀ external [+ passive])`` by a Cholesky solve.
 
     ``include_passive=True`` adds the joint springs and dampers (MuJoCo's ``mj_forward``
-    with ``qfrc_passive``; what :meth:`jaxbody.Model.acceleration` and ``jb.simulate`` use).
+    with ``qfrc_passive``; what the scene of a model (:func:`jaxbody.scene`) and ``jb.simulate`` use).
     The solve is :func:`jaxbody.linalg.solve_spd` (no LAPACK call, safe under large ``vmap``
     batches on CPU, no explicit inverse).
     """
@@ -398,7 +398,7 @@ def acceleration(
 ) -> Float[Array, " nv"]:
     """Forward dynamics from the coordinates: ``a = M⁻¹ (force − bias + Jᵀ external)``.
 
-    The vector-field kernel of :meth:`jaxbody.Model.acceleration`, scenes and
+    The vector-field kernel of scenes (:func:`jaxbody.scene`) and
     :func:`jaxbody.forward_dynamics`; it checks nothing.
 
     Args:

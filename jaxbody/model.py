@@ -16,9 +16,10 @@ Static structure (:class:`~jaxbody.tree.BodyTree`, :class:`~jaxbody.joints.Joint
 lives in static fields; every physical parameter is a traced array, so ``jax.grad`` reaches
 masses, centres of mass, inertias, offsets and axes.
 
-A :class:`Model` is itself a ``DynamicalSystem`` (``nq``, ``nv``, ``qdot``, ``acceleration``,
-``total_energy``): what :func:`jaxbody.simulate` integrates. Those methods check nothing
-(they run inside solver loops); validate once with :func:`jaxbody.check_inputs`.
+A :class:`Model` is data only: the dynamics live in :mod:`jaxbody.kernels` (``(model, data)``
+functions) and :func:`jaxbody.scene`, whose :class:`~jaxbody.Scene` of a model provides
+``qdot``, ``acceleration`` and ``total_energy`` (what :func:`jaxbody.simulate` integrates; it
+wraps a model into a scene itself).
 """
 
 from collections.abc import Sequence
@@ -28,8 +29,8 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ._types import Array, ArrayLike, Float, ScalarLike, VectorLike
-from .joints import FREE, HINGE, JOINT_KIND_NAMES, JOINT_KINDS, SLIDE, JointLayout, _JointSpec
+from ._types import Array, Float, ScalarLike, VectorLike
+from .joints import FREE, HINGE, JOINT_KIND_NAMES, JOINT_KINDS, SLIDE, JointLayout, JointSpec
 from .tree import BodyTree
 from .validation import validate_parameters
 
@@ -74,7 +75,7 @@ class Model(eqx.Module):
     keyframe_names: tuple[str, ...] = eqx.field(static=True, default=())
     name: str = eqx.field(static=True, default="model")
     #: Loop closures that make the tree a closed mechanism (from MJCF ``<connect>``). The tree
-    #: dynamics (``forward_dynamics``, :meth:`acceleration`) ignore them; scenes impose them as
+    #: dynamics (``forward_dynamics``, :func:`jaxbody.kernels.acceleration`) ignore them; scenes impose them as
     #: Maggi constraints (``jb.scene(model)``, ``jb.simulate(model, ...)``).
     loops: tuple[LoopSpec, ...] = eqx.field(static=True, default=())
 
@@ -121,37 +122,6 @@ class Model(eqx.Module):
         except ValueError:
             raise KeyError(f"no keyframe named {name!r}; keyframes: {list(self.keyframe_names)}") from None
         return self.keyframe_qpos[i], self.keyframe_qvel[i]
-
-    # ---------------------------------------------------------------- DynamicalSystem protocol
-    # The dynamics live in modules that import this one, hence the imports inside the methods.
-    def qdot(self, q: Float[Array, " nq"], v: Float[Array, " nv"]) -> Float[Array, " nq"]:
-        """Coordinate rates (quaternion kinematics for ball and free joints; no checks)."""
-        from .kinematics import qpos_rate
-
-        return qpos_rate(self, q, v)
-
-    def acceleration(
-        self, t: ScalarLike, q: Float[Array, " nq"], v: Float[Array, " nv"], tau: Float[Array, " nv"] | None = None
-    ) -> Float[Array, " nv"]:
-        """Forward dynamics with the joint springs and dampers acting (``include_passive=True``).
-
-        ``M v̇ + bias = tau + passive``; no value checks (safe inside a vmapped solver loop).
-        """
-        from .kernels import acceleration, passive_forces_at
-
-        del t  # autonomous: time enters only through tau
-        force = passive_forces_at(self, q, v)
-        if tau is not None:
-            force = force + tau
-        return acceleration(self, q, v, force, gravity=self.gravity)
-
-    def total_energy(self, q: Float[Array, " nq"], v: Float[Array, " nv"]) -> Float[Array, ""]:
-        """Kinetic plus gravity and joint-spring potential energy (no checks)."""
-        from .data import compute_data
-        from .kernels import kinetic_energy, potential_energy
-
-        data = compute_data(self, q, v)
-        return kinetic_energy(self, data) + potential_energy(self, data)
 
     def __repr__(self):
         loops = f", loops={len(self.loops)}" if self.loops else ""
@@ -226,7 +196,7 @@ class ModelBuilder:
                 f"body {name!r}: inertia must have 3, 6 or 3x3 values, got shape {I.shape}"
             )
         for j in joints:
-            if not isinstance(j, _JointSpec):
+            if not isinstance(j, JointSpec):
                 raise ValueError(f"body {name!r}: joints must be Hinge/Slide/Ball/Free, got {j!r}")
         self._bodies.append(
             dict(

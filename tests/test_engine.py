@@ -116,25 +116,26 @@ def test_passive_forces_are_explicit_and_mj_inverse_is_include_passive():
     without = jb.inverse_dynamics(model, q, v, a)
     np.testing.assert_allclose(without - with_passive, jb.passive_forces(model, q, v), rtol=1e-12)
     # forward dynamics with passive forces inverts inverse dynamics with them, and is what
-    # the model's DynamicalSystem acceleration integrates
+    # the model's scene (its DynamicalSystem) integrates
     acc = jb.forward_dynamics(model, q, v, with_passive, include_passive=True)
     np.testing.assert_allclose(acc, a, rtol=1e-11, atol=1e-12)
-    np.testing.assert_allclose(model.acceleration(0.0, q, v, with_passive), a, rtol=1e-11, atol=1e-12)
+    np.testing.assert_allclose(jb.scene(model).acceleration(0.0, q, v, with_passive), a, rtol=1e-11, atol=1e-12)
 
 
-def test_model_is_a_dynamical_system():
+def test_model_scene_is_a_dynamical_system():
     model = random_model(3, n_body=5)
     q, v, a = random_state(model, 4)
+    system = jb.scene(model)  # a Model is data; its scene carries the protocol
     for name in ("nq", "nv", "qdot", "acceleration", "total_energy"):
-        assert hasattr(model, name)
-    np.testing.assert_allclose(model.qdot(q, v), jb.qpos_rate(model, q, v))
+        assert hasattr(system, name)
+    np.testing.assert_allclose(system.qdot(q, v), jb.qpos_rate(model, q, v))
     np.testing.assert_allclose(
-        model.acceleration(0.0, q, v, a),
+        system.acceleration(0.0, q, v, a),
         jb.forward_dynamics(model, q, v, a + jb.passive_forces(model, q, v)),
         rtol=1e-12, atol=1e-12,
     )
     np.testing.assert_allclose(
-        model.total_energy(q, v), jb.kinetic_energy(model, q, v) + jb.potential_energy(model, q), rtol=1e-13
+        system.total_energy(q, v), jb.kinetic_energy(model, q, v) + jb.potential_energy(model, q), rtol=1e-13
     )
     s = jb.examples.double_pendulum()
     assert s.acceleration(0.0, jnp.array([0.3, 0.1]), jnp.zeros(2), None).shape == (2,)
@@ -146,8 +147,10 @@ def test_unchecked_kernels_keep_a_batch_alive():
     q = jnp.array([[0.1, 0.2, 0.3], [jnp.nan, 0.0, 0.0], [0.3, -0.2, 0.1]])
     v = jnp.zeros((3, 3))
 
+    system = jb.scene(model)
+
     def field(q, v):
-        return model.acceleration(0.0, q, v, None), jb.kernels.mass_matrix(model, jb.compute_data(model, q, v))
+        return system.acceleration(0.0, q, v, None), jb.kernels.mass_matrix(model, jb.compute_data(model, q, v))
 
     acc, M = jax.jit(jax.vmap(field))(q, v)
     assert bool(jnp.all(jnp.isnan(acc[1])))
