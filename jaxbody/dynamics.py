@@ -25,7 +25,7 @@ dispatch instead of hundreds of operations run one by one. Inside ``jit`` it is 
 import equinox as eqx
 import jax.numpy as jnp
 
-from . import kernels, planar
+from . import backends, kernels, planar
 from ._types import Array, ArrayLike, Float
 from .augmented import AugmentedBodies
 from .data import compute_data
@@ -112,7 +112,7 @@ def _forward_dynamics(model, q, v, tau, external, include_passive, kernel):
     if include_passive:
         passive = kernels.passive_forces_at(model, q, v)
         force = passive if force is None else force + passive
-    return kernels.acceleration(model, q, v, force, gravity=model.gravity, external=external, kernel=kernel)
+    return backends.acceleration(model, q, v, force, gravity=model.gravity, external=external, kernel=kernel)
 
 
 def _joint_reactions(model, q, v, a, external):
@@ -206,7 +206,7 @@ def forward_dynamics(
 ) -> Float[Array, " nv"]:
     """Accelerations ``a = M⁻¹ (tau - bias + Jᵀ external [+ passive])``.
 
-    Runs :func:`jaxbody.kernels.acceleration` with ``kernel`` (``None``: the default,
+    Runs :func:`jaxbody.backends.acceleration` with ``kernel`` (``None``: the default,
     vectorised unless ``$JAXBODY_KERNEL`` says otherwise; ``"auto"``: the native kernel where
     it can be built, the fastest on CPU; the same numbers either way, docs/performance.md).
 
@@ -222,7 +222,7 @@ def forward_dynamics(
     ext = rest.pop(0) if external is not None else None
     # the kernel is chosen here ($JAXBODY_KERNEL and the compiler read at each call, not once
     # per compiled program)
-    kernel = kernels.resolve_kernel(model, kernel)
+    kernel = backends.resolve_kernel(model, kernel)
     return _compiled(_forward_dynamics, model, q, v, tau, ext, bool(include_passive), kernel)
 
 

@@ -32,8 +32,6 @@ Conventions (docs/conventions.md):
 """
 
 
-import os
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -41,8 +39,9 @@ import numpy as np
 from ._types import Array, ArrayLike, Float
 from ._util import check_shape, index
 from .augmented import subtree_static_moment
-from .data import Data, compute_data
+from .data import Data
 from .kinematics import (
+    Kinematics,
     body_accelerations,
     dof_motion_at,
     dof_motion_plucker,
@@ -52,7 +51,6 @@ from .kinematics import (
     reference_point,
     rigid_body_kinetic_energy,
 )
-from . import native, unrolled
 from .joints import SLIDE
 from .linalg import solve_spd
 from .model import Model
@@ -69,8 +67,10 @@ __all__ = [
     "potential_energy",
     "passive_forces",
     "passive_forces_at",
-    "acceleration",
-    "KERNELS",
+    "project_force_factors",
+    "spring_displacements",
+    "uniform_field_force",
+    "body_wrench_force",
 ]
 
 
@@ -123,6 +123,49 @@ def _external_loads(model: Model, data: Data, external):
     external = check_shape(external, (model.n_body, 6), "external", dtype=data.com.dtype)
     f, t = external[:, :3], external[:, 3:]
     return f, t + jnp.cross(data.com - data.base_point, f)
+
+
+def uniform_field_force(
+    model: Model, data: Kinematics, field: Float[ArrayLike, "3"]
+) -> Float[Array, " nv"]:
+    """Generalized force of a uniform acceleration field ``g`` (gravity; world) on every mass.
+
+    The field acts on body ``l`` as the force ``m_l g`` at its centre of mass ``C_l``; DoF ``d``
+    of body ``k``, whose unit motion gives the point ``X`` the velocity ``s_d + ω_d × (X − a_d)``
+    (``a_d`` its anchor), receives the power of the forces on the subtree ``S(k)`` it moves:
+    ``Q_d = m_k (s_d · g) + ω_d · ((h_k − m_k a_d) × g)`` with the subtree mass
+    ``m_k = Σ_{S(k)} m_l`` and static moment ``h_k = Σ_{S(k)} m_l C_l`` about the origin (the
+    augmented bodies' subsystem mass and static moment, spec §3, eq. 5, moved to the origin).
+    """
+    field = jnp.asarray(field, data.com.dtype)
+    m = model.body_mass
+    tree = model.tree
+    m_sub = tree.subtree_sum(m)
+    h_sub = tree.subtree_sum(m[:, None] * data.com)
+    b = np.asarray(model.joints.dof_body, dtype=np.int32)
+    lever = h_sub[b] - m_sub[b][:, None] * data.dof_anchor
+    return m_sub[b] * (data.dof_linear @ field) + jnp.sum(data.dof_angular * jnp.cross(lever, field), axis=-1)
+
+
+def body_wrench_force(
+    model: Model, data: Kinematics, wrenches: Float[ArrayLike, "n_body 6"]
+) -> Float[Array, " nv"]:
+    """Generalized force of world forces and torques at the bodies' centres of mass.
+
+    ``wrenches`` is MuJoCo's ``xfrc_applied`` layout: ``(force, torque)`` per body. DoF ``d`` of
+    body ``k`` (unit motion ``s_d + ω_d × (X − a_d)``) receives ``Q_d = s_d · F_k + ω_d · (M_k −
+    a_d × F_k)`` with the subtree sums ``F_k = Σ_{S(k)} f_l`` and ``M_k = Σ_{S(k)} (t_l + C_l ×
+    f_l)`` about the origin: ``Jᵀ external`` of the equations of motion (docs/conventions.md;
+    the body loads ``F_r``, ``M_r`` of Statement 1, spec eqs 1–2, projected on the DoFs).
+    """
+    wrenches = jnp.asarray(wrenches, data.com.dtype)
+    force, torque = wrenches[:, :3], wrenches[:, 3:]
+    tree = model.tree
+    f_sub = tree.subtree_sum(force)
+    m_sub = tree.subtree_sum(torque + jnp.cross(data.com, force))
+    b = np.asarray(model.joints.dof_body, dtype=np.int32)
+    moment = m_sub[b] - jnp.cross(data.dof_anchor, f_sub[b])
+    return jnp.sum(data.dof_linear * f_sub[b], axis=-1) + jnp.sum(data.dof_angular * moment, axis=-1)
 
 
 def force_factors(
@@ -188,8 +231,10 @@ def force_factors(
     )
 
 
-def _project(model: Model, data: Data, factors: ForceFactors):
-    """Generalized forces of the DoFs from the force factors of their bodies."""
+def project_force_factors(model: Model, data: Data, factors: ForceFactors) -> Float[Array, " nv"]:
+    """Generalized forces of the DoFs from the force factors of their bodies: projecting the
+    factors ``(F_k, M_k)`` of body ``k`` on the unit motion of each of its DoFs gives
+    ``τ_d = F_k · v_d(O_0k) + M_k · ω_d`` (spec Statement 1, eqs 1–4)."""
     if model.nv == 0:
         return jnp.zeros((0,), data.com.dtype)
     k = index(model.joints.dof_body)
@@ -202,7 +247,7 @@ def bias_forces(model: Model, data: Data, *, gravity: bool = True) -> Float[Arra
 
     ``gravity=False``: the velocity-product terms alone (gravity left out of the program).
     """
-    return _project(model, data, force_factors(model, data, jnp.zeros_like(data.v), gravity=gravity))
+    return project_force_factors(model, data, force_factors(model, data, jnp.zeros_like(data.v), gravity=gravity))
 
 
 def inverse_dynamics(
@@ -223,7 +268,7 @@ def inverse_dynamics(
     computed-torque law on a damped model does not cancel the damping twice.
     """
     a = check_shape(a, (model.nv,), "a", dtype=data.com.dtype)
-    tau = _project(model, data, force_factors(model, data, a, external=external))
+    tau = project_force_factors(model, data, force_factors(model, data, a, external=external))
     tau = tau + model.dof_armature * a
     if include_passive:
         tau = tau - passive_forces(model, data)
@@ -245,7 +290,7 @@ def forward_dynamics(
     The solve is :func:`jaxbody.linalg.solve_spd` (no LAPACK call, safe under large ``vmap``
     batches on CPU, no explicit inverse).
     """
-    rhs = -_project(model, data, force_factors(model, data, jnp.zeros_like(data.v), external=external))
+    rhs = -project_force_factors(model, data, force_factors(model, data, jnp.zeros_like(data.v), external=external))
     if tau is not None:
         rhs = rhs + check_shape(tau, (model.nv,), "tau", dtype=rhs.dtype)
     if include_passive:
@@ -294,8 +339,18 @@ def _quat_log_diff(qa, qb):
     return d[..., 1:] * scale
 
 
-def _spring_terms(model: Model, q):
-    """Per joint kind: displacement vectors from the spring reference (for force and energy)."""
+def spring_displacements(
+    model: Model, q: Float[Array, " nq"]
+) -> list[tuple[np.ndarray, Float[Array, "n 3"], Float[Array, " n"]]]:
+    """Joint-spring displacements ``q ⊖ q_spring`` from the spring reference, per joint kind.
+
+    A list of ``(dofs, displacement, stiffness)``: the DoF indices ``(n, m)`` the displacement
+    acts on, the displacements ``(n, m)`` (a coordinate's difference; for the rotation of a
+    ball or free joint the rotation vector of ``q_spring⁻¹ ⊗ q/|q|``, MuJoCo ``mju_subQuat``)
+    and the stiffness of each of the ``n`` joints. The springs' generalized force is
+    ``τ[dofs] = −k · displacement`` and their energy ``½ k |displacement|²``
+    (:func:`passive_forces_at`, :func:`potential_energy`, :class:`jaxbody.JointSprings`).
+    """
     out = []  # (dof indices, displacement, stiffness per dof)
     for kind, js, qa, da in model.joints.kind_groups():
         k = model.joint_stiffness[js]
@@ -315,7 +370,7 @@ def _spring_terms(model: Model, q):
 def potential_energy(model: Model, data: Data) -> Float[Array, ""]:
     """Gravity plus joint-spring potential energy (as MuJoCo ``mj_energyPos``)."""
     e = -jnp.sum(model.body_mass * (data.com @ model.gravity))
-    for _, disp, k in _spring_terms(model, data.q):
+    for _, disp, k in spring_displacements(model, data.q):
         e = e + 0.5 * jnp.sum(k * jnp.sum(disp * disp, axis=-1))
     return e
 
@@ -328,101 +383,6 @@ def passive_forces(model: Model, data: Data) -> Float[Array, " nv"]:
 def passive_forces_at(model: Model, q: Float[Array, " nq"], v: Float[Array, " nv"]) -> Float[Array, " nv"]:
     """:func:`passive_forces` from the coordinates alone (springs and dampers need no kinematics)."""
     f = -model.dof_damping * v
-    for dofs, disp, k in _spring_terms(model, q):
+    for dofs, disp, k in spring_displacements(model, q):
         f = f.at[dofs].add(-k[:, None] * disp)
     return f
-
-
-# ----------------------------------------------------------------------------- kernel choice
-#: The forward-dynamics kernels :func:`acceleration` can run (see docs/performance.md).
-KERNELS = ("auto", "native", "unrolled", "vectorised")
-#: What ``kernel=None`` means: ``$JAXBODY_KERNEL`` if set, else the vectorised kernel, whose
-#: compile time and memory are flat in the tree's size and which needs nothing but XLA.
-#: ``"auto"`` (the native kernel where it can be built: 5-20x faster per state, but the first
-#: use of each tree costs a C++ compilation of a few seconds, cached on disk) is opt-in.
-DEFAULT_KERNEL = os.environ.get("JAXBODY_KERNEL", "vectorised")
-
-
-def resolve_kernel(model: Model, kernel: str | None) -> str:
-    """The kernel :func:`acceleration` runs for ``model``: ``"native"``, ``"unrolled"`` or ``"vectorised"``.
-
-    ``"auto"``: the native kernel where :func:`jaxbody.native.applies` (a C++ compiler, the
-    CPU backend, at most :data:`jaxbody.native.MAX_DOFS` DoFs); on another backend the
-    unrolled kernel for trees within :data:`jaxbody.unrolled.MAX_BODIES`; else vectorised.
-    """
-    kernel = DEFAULT_KERNEL if kernel is None else kernel
-    if kernel not in KERNELS:
-        raise ValueError(f"kernel must be one of {KERNELS}, got {kernel!r}")
-    if kernel == "native" and not native.available():
-        raise RuntimeError(
-            "kernel='native' needs a C++17 compiler (g++ or $CXX) and the CPU backend; "
-            "use kernel='auto' (falls back to the vectorised kernel) or 'vectorised'"
-        )
-    if kernel != "auto":
-        return kernel
-    if native.applies(model):
-        return "native"
-    if jax.default_backend() != "cpu" and unrolled.applies(model):
-        return "unrolled"
-    return "vectorised"
-
-
-def _vectorised_acceleration(model: Model, q, v, force, gravity, external):
-    """Forward dynamics through :class:`Data` and the vectorised kernels (any tree size)."""
-    data = compute_data(model, q, v)
-    zero = jnp.zeros_like(data.v)
-    factors = force_factors(model, data, zero, external=external, gravity=gravity)
-    rhs = -_project(model, data, factors)
-    if force is not None:
-        rhs = rhs + force
-    return solve_spd(mass_matrix(model, data), rhs)
-
-
-def _unrolled_acceleration(model: Model, q, v, force, gravity, external):
-    return unrolled.forward_dynamics(model, q, v, force, gravity=gravity, external=external)
-
-
-def _native_acceleration(model: Model, q, v, force, gravity, external):
-    return native.forward_dynamics(model, q, v, force, gravity=gravity, external=external)
-
-
-def acceleration(
-    model: Model,
-    q: Float[ArrayLike, " nq"],
-    v: Float[ArrayLike, " nv"],
-    force: Float[ArrayLike, " nv"] | None = None,
-    *,
-    gravity: Float[ArrayLike, "3"] | None = None,
-    external: Float[ArrayLike, "n_body 6"] | None = None,
-    kernel: str | None = None,
-) -> Float[Array, " nv"]:
-    """Forward dynamics from the coordinates: ``a = M⁻¹ (force − bias + Jᵀ external)``.
-
-    The vector-field kernel of scenes (:func:`jaxbody.scene`) and
-    :func:`jaxbody.forward_dynamics`; it checks nothing.
-
-    Args:
-        model, q, v: the model and its state.
-        force: total generalized force in the layout of ``v`` (drives, springs, dampers);
-            ``None`` = zero.
-        gravity: uniform acceleration field (world) acting on every body; ``None`` = none.
-        external: ``(n_body, 6)`` world force and torque at each centre of mass.
-        kernel: ``"native"`` (the tree compiled to machine code, :mod:`jaxbody.native`),
-            ``"unrolled"`` (straight-line scalar program in JAX, :mod:`jaxbody.unrolled`),
-            ``"vectorised"`` (:class:`Data` and the kernels of this module) or ``"auto"``
-            (:func:`resolve_kernel`; docs/performance.md: when each is faster). ``None``:
-            :data:`DEFAULT_KERNEL`.
-    """
-    kernel = resolve_kernel(model, kernel)
-    dtype = model.body_pos.dtype
-    q = check_shape(q, (model.nq,), "q", dtype=dtype)
-    v = check_shape(v, (model.nv,), "v", dtype=dtype)
-    if force is not None:
-        force = check_shape(force, (model.nv,), "force", dtype=dtype)
-    if gravity is not None:
-        gravity = check_shape(gravity, (3,), "gravity", dtype=dtype)
-    if external is not None:
-        external = check_shape(external, (model.n_body, 6), "external", dtype=dtype)
-    args = (model, q, v, force, gravity, external)
-    run = {"native": _native_acceleration, "unrolled": _unrolled_acceleration, "vectorised": _vectorised_acceleration}
-    return run[kernel](*args)

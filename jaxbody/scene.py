@@ -350,7 +350,7 @@ class Scene(eqx.Module):
         return gravity
 
     def _evaluate_direct(self, t, q, v, tau):
-        from .kernels import acceleration
+        from .backends import acceleration
 
         ctx = EffectContext(self, t, q, v)
         gravity = self._gravity(v.dtype)
@@ -384,7 +384,7 @@ class Scene(eqx.Module):
         of joint springs; else ``None`` (the vectorised kinematics serve)."""
         if self.path != "spatial":
             return None
-        from .kernels import resolve_kernel
+        from .backends import resolve_kernel
 
         kernel = resolve_kernel(self.system, self.kernel)
         conservative = [e for e in self.effects if e.conservative]
@@ -395,12 +395,12 @@ class Scene(eqx.Module):
             return None
         gravity = self._gravity(v.dtype)
         if kernel == "native":
-            from . import native
+            from .backends import native
 
             spring = dict(stiffness=springs[0].stiffness, reference=springs[0].reference) if springs else {}
             kinetic, potential, elastic = native.energies(self.system, q, v, gravity=gravity, **spring)
             return kinetic, potential + elastic
-        from . import unrolled
+        from .backends import unrolled
 
         kinetic, potential = unrolled.energies(self.system, q, v, gravity=gravity)
         if springs:
@@ -522,7 +522,7 @@ def scene(
     """
     if isinstance(system, Scene):
         raise ValueError("scene: system is already a Scene")
-    from .kernels import KERNELS
+    from .backends import KERNELS
 
     if kernel is not None and kernel not in KERNELS:
         raise ValueError(f"scene: kernel must be one of {KERNELS}, got {kernel!r}")

@@ -202,7 +202,7 @@ def _native_rk4_step(terms, args, y0):
     exactly what the four stages would: ``simulate``'s own vector field (not the augmented one of
     a backsolve adjoint) for a scene whose forward dynamics is the native kernel and whose
     effects are gravity, joint dampers and joint springs: nothing that depends on time. Returns ``(t0, t1, y0) -> (y1, k)`` or ``None``."""
-    from .native import rk4_step
+    from .backends.native import rk4_step
 
     inner = terms
     while type(inner) is diffrax._term.WrapTerm:  # diffrax's wrapper for the direction of time
@@ -249,7 +249,7 @@ def _native_field(scene, y0, slots):
     springs (nothing that depends on time); a work vector ``w`` must hold the dampers' work
     alone (``slots``). ``None`` otherwise."""
     from .effects import Gravity, JointDampers, JointSprings
-    from .kernels import resolve_kernel
+    from .backends import resolve_kernel
 
     if not isinstance(y0, tuple) or len(y0) not in (2, 3):
         return None
@@ -273,7 +273,7 @@ def _native_field(scene, y0, slots):
 
 def _runs_unrolled_kernel(scene) -> bool:
     """Whether ``scene``'s vector field runs a straight-line forward-dynamics kernel (native or unrolled)."""
-    from .kernels import resolve_kernel
+    from .backends import resolve_kernel
 
     if getattr(scene, "path", None) != "spatial" or not scene._direct():
         return False
@@ -1387,7 +1387,7 @@ def _native_outputs(y0, t1, slots, q, v, w, t, steps, failed) -> tuple:
 
 def _native_solve(scene, y0, t0, t1, dt0, valid, max_steps, slots):
     """The solve of :func:`_integrate` as one native call per batch (:func:`jaxbody.native.rk4_rollout`)."""
-    from .native import rk4_rollout
+    from .backends.native import rk4_rollout
 
     model, kwargs = _native_arguments(scene, y0, valid, slots)
     w0 = y0[2][slots[0]] if len(y0) == 3 else 0.0
@@ -1440,7 +1440,7 @@ def _native_reverse(adjoint, max_steps, slots, y0):
     (:func:`jaxbody.native.rk4_rollout_vjp`): the solve keeps as many checkpoints as the
     checkpointed ``adjoint`` would (default: :func:`default_checkpoints`, within its memory
     budget); ``None`` without a bounded step budget."""
-    from .native import rk4_rollout_checkpointed, rk4_rollout_vjp
+    from .backends.native import rk4_rollout_checkpointed, rk4_rollout_vjp
 
     if max_steps is None:
         return None

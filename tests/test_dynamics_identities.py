@@ -176,7 +176,7 @@ def test_trace_size_does_not_grow_with_body_count(fn):
     # forward_dynamics: trees up to unrolled.MAX_BODIES run the unrolled kernel (a program
     # that grows with the tree, by design, test_unrolled.py bounds it); above it the
     # vectorised kernel, whose solve loops: compare two sizes on that path
-    from jaxbody import unrolled
+    from jaxbody.backends import unrolled
 
     small = 4 if fn != "forward_dynamics" else unrolled.MAX_BODIES + 4
     assert eqns(small) == eqns(64)

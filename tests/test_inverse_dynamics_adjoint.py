@@ -1,6 +1,6 @@
 """The hand-derived adjoint of inverse dynamics (trees of hinges and slides).
 
-``jaxbody.unrolled._inverse_dynamics_vjp`` gives ``λᵀ ∂τ/∂q`` and ``λᵀ ∂τ/∂v`` of the
+``jaxbody.backends.scalar.inverse_dynamics_vjp`` gives ``λᵀ ∂τ/∂q`` and ``λᵀ ∂τ/∂v`` of the
 Newton–Euler passes in closed form; the native kernel's reverse-mode programs use it in place
 of reversing the passes operation by operation. It is checked against JAX's reverse mode
 through the same passes (an independent derivation), and the native programs that use it
@@ -15,7 +15,9 @@ from mjcf_random import random_mjcf
 from random_models import hinge_chain, random_model, random_state
 
 import jaxbody as jb
-from jaxbody import kernels, native, unrolled
+from jaxbody import backends
+from jaxbody.backends import native, scalar, unrolled
+from jaxbody.backends.native import codegen
 
 pytestmark = pytest.mark.filterwarnings("ignore:from_mjcf")
 
@@ -37,18 +39,18 @@ def _models():
 @pytest.mark.parametrize("gravity", [True, False])
 def test_adjoint_equals_reverse_mode_through_the_passes(name, model, gravity):
     jax.config.update("jax_enable_x64", True)
-    assert unrolled.adjoint_applies(model.joints), name
+    assert scalar.adjoint_applies(model.joints), name
     q, v, a = random_state(model, 5)
     lam = jnp.asarray(np.random.default_rng(6).standard_normal(model.nv))
     g = jnp.asarray(model.gravity) if gravity else None
 
     def tau(q, v):
         qs, vs, gs, _ = unrolled._scalar_inputs(model, q, v, g, None)
-        return jnp.stack(unrolled._inverse_dynamics(model, qs, vs, unrolled._scalars(a), gs, None))
+        return jnp.stack(scalar.inverse_dynamics(model, qs, vs, scalar.scalars(a), gs, None))
 
     q_ref, v_ref = jax.vjp(tau, q, v)[1](lam)
     qs, vs, gs, _ = unrolled._scalar_inputs(model, q, v, g, None)
-    q_bar, v_bar = unrolled._inverse_dynamics_vjp(model, qs, vs, unrolled._scalars(a), gs, unrolled._scalars(lam))
+    q_bar, v_bar = scalar.inverse_dynamics_vjp(model, qs, vs, scalar.scalars(a), gs, scalar.scalars(lam))
     q_bar = jnp.stack([jnp.asarray(x, jnp.float64) for x in q_bar])
     v_bar = jnp.stack([jnp.asarray(x, jnp.float64) for x in v_bar])
     for got, ref in ((q_bar, q_ref), (v_bar, v_ref)):
@@ -58,10 +60,10 @@ def test_adjoint_equals_reverse_mode_through_the_passes(name, model, gravity):
 def test_quaternion_joints_keep_reverse_mode():
     """Ball and free joints (a moving reference point) are not served: the programs reverse the
     passes as before (checked in test_native.py on a free base with a ball)."""
-    assert not unrolled.adjoint_applies(random_model(0, n_body=2, kinds=("ball",)).joints)
-    assert not unrolled.adjoint_applies(random_model(0, n_body=3, kinds=("hinge",), free_root=True).joints)
+    assert not scalar.adjoint_applies(random_model(0, n_body=2, kinds=("ball",)).joints)
+    assert not scalar.adjoint_applies(random_model(0, n_body=3, kinds=("hinge",), free_root=True).joints)
     model = random_model(0, n_body=2, kinds=("ball",))
-    assert "inverse dynamics" not in native._generate(model.tree, model.joints, False, np.float64, "vjp")
+    assert "inverse dynamics" not in codegen.generate(model.tree, model.joints, False, np.float64, "vjp")
 
 
 def test_reverse_mode_programs_use_it_and_are_shorter(monkeypatch):
@@ -71,22 +73,22 @@ def test_reverse_mode_programs_use_it_and_are_shorter(monkeypatch):
     model = hinge_chain(5)
 
     def size(mode):
-        return sum(1 for line in native._generate(model.tree, model.joints, False, np.float64, mode).splitlines() if "const U" in line)
+        return sum(1 for line in codegen.generate(model.tree, model.joints, False, np.float64, mode).splitlines() if "const U" in line)
 
     hand = {mode: size(mode) for mode in ("vjp", "rk4_vjp")}
-    assert "inverse dynamics" in native._generate(model.tree, model.joints, False, np.float64, "rk4_vjp")
-    monkeypatch.setattr(unrolled, "adjoint_applies", lambda joints: False)
+    assert "inverse dynamics" in codegen.generate(model.tree, model.joints, False, np.float64, "rk4_vjp")
+    monkeypatch.setattr(scalar, "adjoint_applies", lambda joints: False)
     generic = {mode: size(mode) for mode in ("vjp", "rk4_vjp")}
     for mode in hand:
         assert hand[mode] < 0.85 * generic[mode], (mode, hand[mode], generic[mode])
     # with body loads the block does not apply (their moments move with the bodies)
-    assert "inverse dynamics" not in native._generate(model.tree, model.joints, True, np.float64, "vjp")
+    assert "inverse dynamics" not in codegen.generate(model.tree, model.joints, True, np.float64, "vjp")
 
 
 def _native_case():
     jax.config.update("jax_enable_x64", True)
     model = random_model(1, n_body=4, kinds=KINDS, free_root=False)
-    assert unrolled.adjoint_applies(model.joints)
+    assert scalar.adjoint_applies(model.joints)
     rng = np.random.default_rng(3)
     q = jnp.stack([random_state(model, s)[0] for s in range(3)])
     v, tau, ct = (jnp.asarray(rng.standard_normal((3, model.nv))) for _ in range(3))
@@ -106,7 +108,7 @@ def test_native_reverse_mode_equals_the_vectorised_kernel():
 
     def vjp_fd(kernel):
         def one(q, v, t, c):
-            fd = lambda q, v, t: kernels.acceleration(model, q, v, t, gravity=g, kernel=kernel)  # noqa: E731
+            fd = lambda q, v, t: backends.acceleration(model, q, v, t, gravity=g, kernel=kernel)  # noqa: E731
             return jax.vjp(fd, q, v, t)[1](c)
 
         return one
@@ -130,7 +132,7 @@ def test_native_step_reverse_mode_equals_the_vectorised_kernel():
     def step_reference(q, v, t):
         def field(q, v):
             total = t - stiffness * (q - reference) - damping * v  # hinges and slides: one q per DoF
-            return v, kernels.acceleration(model, q, v, total, gravity=g, kernel="vectorised")
+            return v, backends.acceleration(model, q, v, total, gravity=g, kernel="vectorised")
 
         k1 = field(q, v)
         k2 = field(q + 0.005 * k1[0], v + 0.005 * k1[1])

@@ -1,7 +1,7 @@
 """The native forward-dynamics kernel against MuJoCo and the vectorised kernel.
 
 The native kernel is the unrolled algorithm emitted as C++ for the model's tree and called
-through XLA's FFI (jaxbody/native.py). It is checked here against MuJoCo's ``mj_forward`` on
+through XLA's FFI (jaxbody/backends/native/). It is checked here against MuJoCo's ``mj_forward`` on
 the shipped robots (fixed and free base), against the vectorised kernel on seeded random MJCF
 trees with every joint kind, single and batched (nested ``vmap``, batches that are not a
 multiple of the SIMD width, unbatched inputs), with derivatives against finite differences,
@@ -20,7 +20,8 @@ from jax.test_util import check_grads
 from jaxpr_tools import count_eqns
 
 import jaxbody as jb
-from jaxbody import kernels, native
+from jaxbody import backends
+from jaxbody.backends import native
 
 pytestmark = pytest.mark.filterwarnings("ignore:from_mjcf")
 
@@ -59,14 +60,14 @@ def test_native_equals_mujoco_on_the_shipped_robots(models_dir, name):
     tau = jnp.asarray(rng.standard_normal((6, model.nv)))
     ext = jnp.asarray(rng.standard_normal((6, model.n_body, 6)))
     fd = lambda kernel, e: jax.jit(jax.vmap(  # noqa: E731
-        lambda q, v, t, x: kernels.acceleration(model, q, v, t, gravity=model.gravity, external=x, kernel=kernel)
+        lambda q, v, t, x: backends.acceleration(model, q, v, t, gravity=model.gravity, external=x, kernel=kernel)
     ))(q, v, tau, e)
     a_native = np.asarray(fd("native", ext))
     a_ref = _mujoco_qacc(path, np.asarray(q), np.asarray(v), np.asarray(tau), np.asarray(ext))
     assert np.max(np.abs(a_native - a_ref)) <= 1e-10 * np.abs(a_ref).max()
     # without loads: a different generated program, the same numbers as the vectorised kernel
     no_loads = lambda kernel: jax.jit(jax.vmap(  # noqa: E731
-        lambda q, v, t: kernels.acceleration(model, q, v, t, gravity=model.gravity, kernel=kernel)
+        lambda q, v, t: backends.acceleration(model, q, v, t, gravity=model.gravity, kernel=kernel)
     ))(q, v, tau)
     a0, b0 = np.asarray(no_loads("native")), np.asarray(no_loads("vectorised"))
     assert np.max(np.abs(a0 - b0)) <= 1e-11 * np.abs(b0).max()
@@ -81,7 +82,7 @@ def test_native_on_random_trees_with_every_joint_kind(seed):
     q, v = _states(model, rng, 5)
     tau = jnp.asarray(rng.standard_normal((5, model.nv)))
     run = lambda kernel: jax.jit(jax.vmap(  # noqa: E731
-        lambda q, v, t: kernels.acceleration(model, q, v, t, gravity=model.gravity, kernel=kernel)
+        lambda q, v, t: backends.acceleration(model, q, v, t, gravity=model.gravity, kernel=kernel)
     ))(q, v, tau)
     a, b = run("native"), run("vectorised")
     assert float(jnp.max(jnp.abs(a - b))) <= 1e-9 * float(jnp.max(jnp.abs(b)))
@@ -95,7 +96,7 @@ def test_batches_single_states_and_nested_vmap(models_dir):
     q, v = _states(model, rng, 103)
 
     def fd(kernel):
-        return lambda m, q, v: kernels.acceleration(m, q, v, -0.3 * v, gravity=m.gravity, kernel=kernel)
+        return lambda m, q, v: backends.acceleration(m, q, v, -0.3 * v, gravity=m.gravity, kernel=kernel)
 
     def close(x, y, tol=1e-11):
         assert float(jnp.max(jnp.abs(x - y))) <= tol * float(jnp.max(jnp.abs(y)))
@@ -133,7 +134,7 @@ def test_gradients_match_finite_differences():
 
     def fun(q, v, tau, mass):
         m = eqx.tree_at(lambda m: m.body_mass, model, mass)
-        return kernels.acceleration(m, q, v, tau, gravity=model.gravity, kernel="native")
+        return backends.acceleration(m, q, v, tau, gravity=model.gravity, kernel="native")
 
     check_grads(jax.jit(fun), (q[0], v[0], tau, model.body_mass), order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6)
 
@@ -160,7 +161,7 @@ def test_generated_derivatives_equal_the_vectorised_kernel():
     ext = jnp.asarray(rng.standard_normal((model.tree.n_body, 6)))
 
     def fd(kernel):
-        return lambda q, v, t: kernels.acceleration(model, q, v, t, gravity=model.gravity, external=ext, kernel=kernel)
+        return lambda q, v, t: backends.acceleration(model, q, v, t, gravity=model.gravity, external=ext, kernel=kernel)
 
     def close(x, y, tol=1e-10):
         for a, b in zip(jax.tree.leaves(x), jax.tree.leaves(y)):
@@ -192,7 +193,7 @@ def test_generated_derivatives_of_an_18_dof_free_base_robot(models_dir):
     ext = jnp.asarray(rng.standard_normal((model.n_body, 6)))
 
     def fd(kernel):
-        return lambda q, v, t: kernels.acceleration(model, q, v, t, gravity=model.gravity, external=ext, kernel=kernel)
+        return lambda q, v, t: backends.acceleration(model, q, v, t, gravity=model.gravity, external=ext, kernel=kernel)
 
     for jac in (jax.jacfwd, jax.jacrev):
         got = jax.jit(jac(fd("native"), argnums=(0, 1, 2)))(q[0], v[0], tau)
@@ -211,7 +212,7 @@ def test_second_derivatives_through_the_native_kernel():
     tau = jnp.asarray(rng.standard_normal(model.nv))
 
     def hess(kernel):
-        fd = lambda v: kernels.acceleration(model, q[0], v, tau, gravity=model.gravity, kernel=kernel)  # noqa: E731
+        fd = lambda v: backends.acceleration(model, q[0], v, tau, gravity=model.gravity, kernel=kernel)  # noqa: E731
         return jax.jit(jax.hessian(lambda v: jnp.sum(fd(v) ** 2)))(v[0])
 
     a, b = hess("native"), hess("vectorised")
@@ -262,7 +263,7 @@ def test_reverse_mode_under_vmap_equals_the_vectorised_kernel(models_dir):
     rng = np.random.default_rng(7)
     tau = jnp.asarray(rng.standard_normal(model.nv))
     qs, vs = _states(model, rng, 6)
-    loss = lambda k: lambda q, v: jnp.sum(jnp.sin(kernels.acceleration(model, q, v, tau, gravity=model.gravity, kernel=k)))  # noqa: E731
+    loss = lambda k: lambda q, v: jnp.sum(jnp.sin(backends.acceleration(model, q, v, tau, gravity=model.gravity, kernel=k)))  # noqa: E731
     g_n = jax.vmap(jax.grad(loss("native"), argnums=(0, 1)))(qs, vs)
     g_v = jax.vmap(jax.grad(loss("vectorised"), argnums=(0, 1)))(qs, vs)
     for x, y in zip(g_n, g_v):
@@ -274,7 +275,7 @@ def test_program_size_does_not_grow_with_the_tree():
 
     def size(n):
         m = hinge_chain(n)
-        fn = lambda q, v: kernels.acceleration(m, q, v, kernel="native")  # noqa: E731
+        fn = lambda q, v: backends.acceleration(m, q, v, kernel="native")  # noqa: E731
         return count_eqns(jax.make_jaxpr(fn)(jnp.zeros(m.nq), jnp.zeros(m.nv)).jaxpr)
 
     assert size(3) == size(12)
@@ -285,12 +286,12 @@ def test_large_batch_and_a_nan_member(models_dir):
     rng = np.random.default_rng(4)
     q, v = _states(model, rng, 65536)
     v = v.at[5].set(jnp.nan)
-    a = jax.jit(jax.vmap(lambda q, v: kernels.acceleration(model, q, v, gravity=model.gravity, kernel="native")))(q, v)
+    a = jax.jit(jax.vmap(lambda q, v: backends.acceleration(model, q, v, gravity=model.gravity, kernel="native")))(q, v)
     assert a.shape == (65536, model.nv)
     assert bool(jnp.all(jnp.isnan(a[5])))
     finite = jnp.isfinite(a).all(axis=1)
     assert int(finite.sum()) == 65535
-    ref = jax.jit(jax.vmap(lambda q, v: kernels.acceleration(model, q, v, gravity=model.gravity, kernel="vectorised")))(q[-64:], v[-64:])
+    ref = jax.jit(jax.vmap(lambda q, v: backends.acceleration(model, q, v, gravity=model.gravity, kernel="vectorised")))(q[-64:], v[-64:])
     assert float(jnp.max(jnp.abs(a[-64:] - ref))) <= 1e-11 * float(jnp.max(jnp.abs(ref)))
 
 
@@ -302,11 +303,11 @@ def test_float32_within_1e4_of_float64(models_dir):
 import warnings; warnings.simplefilter('ignore')
 import jax, jax.numpy as jnp, numpy as np
 import jaxbody as jb
-from jaxbody import kernels
+from jaxbody import backends
 m = jb.from_mjcf({str(models_dir / 'panda.xml')!r})
 rng = np.random.default_rng(0)
 q = np.asarray(m.qpos0) + 0.4 * rng.standard_normal((37, m.nq)); v = rng.standard_normal((37, m.nv))
-f = jax.vmap(lambda q, v: kernels.acceleration(m, q, v, gravity=m.gravity, kernel='native'))
+f = jax.vmap(lambda q, v: backends.acceleration(m, q, v, gravity=m.gravity, kernel='native'))
 # 37 states: the 512-bit build where there is AVX-512 (two full blocks of 16 and a partial one,
 # read by gathers and written by scatters), else the 256-bit one; 8 states: the 256-bit build
 a = f(jnp.asarray(q, jnp.float32), jnp.asarray(v, jnp.float32))
@@ -314,7 +315,7 @@ assert a.dtype == jnp.float32 and bool(jnp.all(jnp.isfinite(a)))
 a8 = f(jnp.asarray(q[:8], jnp.float32), jnp.asarray(v[:8], jnp.float32))
 assert float(jnp.max(jnp.abs(a8 - a[:8]))) <= 1e-5 * float(jnp.max(jnp.abs(a[:8])))
 # a single state runs the scalar build, a batch the vector one: the same float32 operations
-one = jax.jit(lambda q, v: kernels.acceleration(m, q, v, gravity=m.gravity, kernel='native'))(jnp.asarray(q[3], jnp.float32), jnp.asarray(v[3], jnp.float32))
+one = jax.jit(lambda q, v: backends.acceleration(m, q, v, gravity=m.gravity, kernel='native'))(jnp.asarray(q[3], jnp.float32), jnp.asarray(v[3], jnp.float32))
 assert one.dtype == jnp.float32 and float(jnp.max(jnp.abs(one - a[3]))) <= 1e-5 * float(jnp.max(jnp.abs(a[3]))), (one, a[3])
 print(' '.join(repr(float(x)) for x in np.ravel(a)))
 """
@@ -325,7 +326,7 @@ print(' '.join(repr(float(x)) for x in np.ravel(a)))
     rng = np.random.default_rng(0)
     q = np.asarray(model.qpos0) + 0.4 * rng.standard_normal((37, model.nq))
     v = rng.standard_normal((37, model.nv))
-    a64 = np.asarray(jax.jit(jax.vmap(lambda q, v: kernels.acceleration(model, q, v, gravity=model.gravity, kernel="vectorised")))(q, v))
+    a64 = np.asarray(jax.jit(jax.vmap(lambda q, v: backends.acceleration(model, q, v, gravity=model.gravity, kernel="vectorised")))(q, v))
     assert np.max(np.abs(a32 - a64)) <= 1e-4 * max(1.0, np.abs(a64).max())
 
 
@@ -345,13 +346,13 @@ import warnings; warnings.simplefilter('ignore')
 import jax; jax.config.update('jax_enable_x64', True)
 import jax.numpy as jnp, numpy as np
 import jaxbody as jb
-from jaxbody import kernels
+from jaxbody import backends
 m = jb.from_mjcf({str(models_dir / 'panda.xml')!r})
 rng = np.random.default_rng(5)
 q = jnp.asarray(np.asarray(m.qpos0) + 0.4 * rng.standard_normal((1000, m.nq)))
 v = jnp.asarray(rng.standard_normal((1000, m.nv)))
 def fd(kernel):
-    return jax.vmap(lambda q, v: kernels.acceleration(m, q, v, gravity=m.gravity, kernel=kernel))
+    return jax.vmap(lambda q, v: backends.acceleration(m, q, v, gravity=m.gravity, kernel=kernel))
 native, ref = jax.jit(fd('native')), jax.jit(fd('vectorised'))
 for rep in range(3):
     for b in (100, 130, 257, 1000):  # one, two, three (partial) and three slices
@@ -373,7 +374,7 @@ def test_simulate_with_the_native_kernel_equals_the_vectorised_one(models_dir):
 
     model = jb.from_mjcf(str(models_dir / "panda.xml"))
     fast, ref = jb.scene(model, kernel="auto"), jb.scene(model, kernel="vectorised")
-    assert kernels.resolve_kernel(model, "auto") == "native"
+    assert backends.resolve_kernel(model, "auto") == "native"
     pick = lambda sc: simulation._solver("rk4", sc, jnp.float64, 1e-8, 1e-8, 1e-3, None)[0].solver  # noqa: E731
     assert type(pick(fast)) is simulation.RK4Stages
     q0 = model.qpos0 + 0.2
@@ -392,17 +393,19 @@ def test_unavailable_native_kernel_is_a_clear_error_and_auto_falls_back(monkeypa
     from random_models import hinge_chain
 
     model = hinge_chain(2)
+    # the package re-exports what its build module defines and uses: both say unavailable
     monkeypatch.setattr(native, "available", lambda: False)
+    monkeypatch.setattr(native.build, "available", lambda: False)
     with pytest.raises(RuntimeError, match="kernel='native' needs a C\\+\\+17 compiler"):
-        kernels.acceleration(model, jnp.zeros(2), jnp.zeros(2), kernel="native")
-    assert kernels.resolve_kernel(model, "auto") == "vectorised"
+        backends.acceleration(model, jnp.zeros(2), jnp.zeros(2), kernel="native")
+    assert backends.resolve_kernel(model, "auto") == "vectorised"
     with pytest.raises(ValueError, match="kernel must be one of"):
-        kernels.resolve_kernel(model, "fast")
+        backends.resolve_kernel(model, "fast")
     # a compiler that fails: the error shows the command and the compiler's message
     monkeypatch.setenv("CXX", "false")
     monkeypatch.setenv("JAXBODY_CACHE_DIR", str(tmp_path))
     with pytest.raises(RuntimeError, match="building the native kernel failed"):
-        native._build("int x;", "probe")
+        native.build.build_library("int x;", "probe")
 
 
 def test_concurrent_builders_of_one_library_compile_it_once(tmp_path):
@@ -421,8 +424,8 @@ def test_concurrent_builders_of_one_library_compile_it_once(tmp_path):
     wrapper.write_text(f"#!/bin/sh\necho call >> {log}\nsleep 1\nexec {compiler} \"$@\"\n")
     wrapper.chmod(0o755)
     env = dict(os.environ, CXX=str(wrapper), JAXBODY_CACHE_DIR=str(tmp_path / "cache"))
-    code = ("import sys; from jaxbody import native; "
-            "print(native._build('extern \"C\" int jb_probe() { return 7; }', 'probe'))")
+    code = ("import sys; from jaxbody.backends.native.build import build_library; "
+            "print(build_library('extern \"C\" int jb_probe() { return 7; }', 'probe'))")
     procs = [subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.PIPE, text=True)
              for _ in range(3)]
     paths = {p.communicate(timeout=120)[0].strip() for p in procs}
@@ -442,7 +445,7 @@ def test_sines_of_large_joint_angles():
     for offset in (0.0, 2.0e3 * np.pi + 0.3, 7.0e4, 3.0e5):
         q = jnp.asarray(base + offset)
         v = jnp.asarray(rng.standard_normal((8, 4)))
-        run = lambda kernel: jax.jit(jax.vmap(lambda q, v: kernels.acceleration(model, q, v, gravity=model.gravity, kernel=kernel)))(q, v)  # noqa: E731
+        run = lambda kernel: jax.jit(jax.vmap(lambda q, v: backends.acceleration(model, q, v, gravity=model.gravity, kernel=kernel)))(q, v)  # noqa: E731
         a, b = run("native"), run("vectorised")
         assert float(jnp.max(jnp.abs(a - b))) <= 1e-10 * float(jnp.max(jnp.abs(b))), offset
 
@@ -459,7 +462,7 @@ def test_float32_sines_over_many_turns():
 
     def run(dtype):
         model = hinge_chain(3, dtype=dtype)
-        fn = jax.jit(jax.vmap(lambda q, v: kernels.acceleration(model, q, v, gravity=model.gravity, kernel="native")))
+        fn = jax.jit(jax.vmap(lambda q, v: backends.acceleration(model, q, v, gravity=model.gravity, kernel="native")))
         return np.asarray(fn(q32.astype(dtype), v32.astype(dtype)), np.float64)
 
     a32, a64 = run(jnp.float32), run(jnp.float64)

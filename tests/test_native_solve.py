@@ -1,11 +1,11 @@
 """A whole fixed-step RK4 solve in one native call, and its native reverse sweep.
 
 ``jb.simulate(..., solver="rk4", dt0=..., saveat=SaveAt(t1=True))`` on the native kernel runs
-the solve as one call (``jaxbody.native.rk4_rollout``): every field of the solution must equal
+the solve as one call (``jaxbody.backends.native.rk4_rollout``): every field of the solution must equal
 the step-by-step solve through diffrax (``$JAXBODY_NATIVE_SOLVE=0``) and the vectorised
 kernel, including each trajectory's own outcome in a batch (invalid input, a non-finite step,
 the step budget). Gradients with respect to the initial state come from the native reverse
-sweep (``jaxbody.native.rk4_rollout_vjp``, with recomputed segments when the checkpoints do not
+sweep (``jaxbody.backends.native.rk4_rollout_vjp``, with recomputed segments when the checkpoints do not
 hold every step); every other gradient through the step-by-step solve.
 """
 
@@ -18,7 +18,8 @@ import pytest
 from jax.test_util import check_grads
 
 import jaxbody as jb
-from jaxbody import native, simulation
+from jaxbody import simulation
+from jaxbody.backends import native
 
 pytestmark = pytest.mark.filterwarnings("ignore:from_mjcf")
 

@@ -1,6 +1,6 @@
 """The native RK4 step: one generated program for the four stages of a classical RK4 step.
 
-``jaxbody.native.rk4_step`` is checked against RK4 written out here in JAX around the
+``jaxbody.backends.native.rk4_step`` is checked against RK4 written out here in JAX around the
 vectorised kernel (an independent path: no generated code), with springs, dampers and the
 dampers' work, for a hinge chain and a free-base tree with a ball joint; its derivatives
 (the step's generated forward- and reverse-mode programs, and the JAX path for parameters)
@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 
 import jaxbody as jb
-from jaxbody import kernels, native, simulation
+from jaxbody import backends, kernels, simulation
+from jaxbody.backends import native
 from jaxbody.kinematics import qpos_rate
 
 pytestmark = pytest.mark.filterwarnings("ignore:from_mjcf")
@@ -29,10 +30,10 @@ def _reference_step(model, q, v, h, force, gravity, stiffness, reference, dampin
 
     def field(q, v):
         spring = jnp.zeros_like(v)
-        for dofs, disp, k in kernels._spring_terms(springy, q):
+        for dofs, disp, k in kernels.spring_displacements(springy, q):
             spring = spring.at[dofs].add(-k[:, None] * disp)
         damper = -damping * v
-        a = kernels.acceleration(model, q, v, force + spring + damper, gravity=gravity, kernel="vectorised")
+        a = backends.acceleration(model, q, v, force + spring + damper, gravity=gravity, kernel="vectorised")
         return h * qpos_rate(model, q, v), h * a, h * jnp.dot(damper, v)
 
     k1 = field(q, v)

@@ -14,7 +14,8 @@ import pytest
 from jaxpr_tools import count_eqns
 
 import jaxbody as jb
-from jaxbody import kernels, unrolled
+from jaxbody import backends, kernels
+from jaxbody.backends import unrolled
 
 pytestmark = pytest.mark.filterwarnings("ignore:from_mjcf")
 
@@ -35,7 +36,7 @@ def test_unrolled_equals_vectorised_and_mujoco(models_dir, name):
     q, v = _state(model, rng)
     tau = jnp.asarray(rng.standard_normal(model.nv))
     ext = jnp.asarray(rng.standard_normal((model.n_body, 6)))
-    a = {k: kernels.acceleration(model, q, v, tau, gravity=model.gravity, external=ext, kernel=k) for k in ("unrolled", "vectorised")}
+    a = {k: backends.acceleration(model, q, v, tau, gravity=model.gravity, external=ext, kernel=k) for k in ("unrolled", "vectorised")}
     scale = float(jnp.max(jnp.abs(a["vectorised"])))
     assert float(jnp.max(jnp.abs(a["unrolled"] - a["vectorised"]))) <= 1e-11 * scale
     # MuJoCo on the same file, rigid body only
@@ -59,8 +60,8 @@ def test_unrolled_on_random_trees_with_every_joint_kind(seed):
     q, v = _state(model, rng)
     tau = jnp.asarray(rng.standard_normal(model.nv))
     args = dict(gravity=model.gravity)
-    a_u = kernels.acceleration(model, q, v, tau, kernel="unrolled", **args)
-    a_v = kernels.acceleration(model, q, v, tau, kernel="vectorised", **args)
+    a_u = backends.acceleration(model, q, v, tau, kernel="unrolled", **args)
+    a_v = backends.acceleration(model, q, v, tau, kernel="vectorised", **args)
     assert float(jnp.max(jnp.abs(a_u - a_v))) <= 1e-9 * float(jnp.max(jnp.abs(a_v)))
     M_u = unrolled.mass_matrix(model, q)
     M_v = kernels.mass_matrix(model, jb.compute_data(model, q))
@@ -76,7 +77,7 @@ def test_unrolled_batches_and_derivatives_agree_with_the_vectorised_kernel(model
     q, v = _state(model, rng, batch=64)
 
     def f(kernel):
-        return lambda q, v: kernels.acceleration(model, q, v, -v, gravity=model.gravity, kernel=kernel)
+        return lambda q, v: backends.acceleration(model, q, v, -v, gravity=model.gravity, kernel=kernel)
 
     a_auto = jax.jit(jax.vmap(f("unrolled")))(q, v)
     a_vec = jax.jit(jax.vmap(f("vectorised")))(q, v)
@@ -100,7 +101,7 @@ def test_unrolled_gradients_match_finite_differences(models_dir):
     model = jb.from_mjcf(str(models_dir / "ur5e.xml"))
     rng = np.random.default_rng(7)
     q, v = _state(model, rng)
-    fun = lambda q, v, mass: kernels.acceleration(
+    fun = lambda q, v, mass: backends.acceleration(
         eqx_mass(model, mass), q, v, gravity=model.gravity, kernel="unrolled"
     )
     check_grads(fun, (q, v, model.body_mass), order=1, modes=("fwd", "rev"), atol=1e-5, rtol=1e-5)
@@ -120,11 +121,11 @@ def test_unrolled_float32_within_1e4_of_float64(models_dir):
 import warnings; warnings.simplefilter('ignore')
 import jax, jax.numpy as jnp, numpy as np
 import jaxbody as jb
-from jaxbody import kernels
+from jaxbody import backends
 m = jb.from_mjcf({str(models_dir / 'panda.xml')!r})
 rng = np.random.default_rng(0)
 q = np.asarray(m.qpos0) + 0.4 * rng.standard_normal(m.nq); v = rng.standard_normal(m.nv)
-a = kernels.acceleration(m, jnp.asarray(q, jnp.float32), jnp.asarray(v, jnp.float32), gravity=m.gravity, kernel='unrolled')
+a = backends.acceleration(m, jnp.asarray(q, jnp.float32), jnp.asarray(v, jnp.float32), gravity=m.gravity, kernel='unrolled')
 assert a.dtype == jnp.float32 and bool(jnp.all(jnp.isfinite(a)))
 np.save('/dev/stdout', np.asarray(a, np.float64)) if False else print(' '.join(repr(float(x)) for x in a))
 """
@@ -135,7 +136,7 @@ np.save('/dev/stdout', np.asarray(a, np.float64)) if False else print(' '.join(r
     rng = np.random.default_rng(0)
     q = np.asarray(model.qpos0) + 0.4 * rng.standard_normal(model.nq)
     v = rng.standard_normal(model.nv)
-    a64 = np.asarray(kernels.acceleration(model, q, v, gravity=model.gravity, kernel="vectorised"))
+    a64 = np.asarray(backends.acceleration(model, q, v, gravity=model.gravity, kernel="vectorised"))
     assert np.max(np.abs(a32 - a64)) <= 1e-4 * max(1.0, np.abs(a64).max())
 
 
@@ -145,7 +146,7 @@ def test_auto_threshold_and_bad_kernel_name():
     assert unrolled.applies(chain_model(unrolled.MAX_BODIES))
     assert not unrolled.applies(chain_model(unrolled.MAX_BODIES + 1))
     with pytest.raises(ValueError, match="kernel must be one of"):
-        kernels.acceleration(chain_model(2), jnp.zeros(2), jnp.zeros(2), kernel="fast")
+        backends.acceleration(chain_model(2), jnp.zeros(2), jnp.zeros(2), kernel="fast")
     with pytest.raises(ValueError, match="scene: kernel must be one of"):
         jb.scene(chain_model(2), kernel="fast")
 

@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 
 from .._types import Array, Float
+from ..kernels import body_wrench_force, spring_displacements
 from ._base import Effect, EffectContext
 
 __all__ = [
@@ -60,12 +61,10 @@ class JointSprings(Effect):
     conservative: ClassVar[bool] = True
 
     def _terms(self, ctx):
-        from ..kernels import _spring_terms  # per-kind spring displacements, shared with the core
-
         model = eqx.tree_at(
             lambda m: (m.joint_stiffness, m.qpos_spring), ctx.scene.model, (self.stiffness, self.reference)
         )
-        return _spring_terms(model, ctx.q)
+        return spring_displacements(model, ctx.q)
 
     def generalized_force(self, ctx: EffectContext):
         f = jnp.zeros_like(ctx.v)
@@ -178,8 +177,10 @@ class BodyLoads(Effect):
     name: ClassVar[str] = "loads"
 
     def generalized_force(self, ctx: EffectContext):
+        if ctx.scene.path != "spatial":
+            raise ValueError("body loads need the spatial path")
         w = jnp.asarray(self.wrench(ctx.t, ctx.q, ctx.v), ctx.v.dtype)
-        return ctx.scene._body_wrench_force(ctx, w[:, :3], w[:, 3:])
+        return body_wrench_force(ctx.scene.model, ctx.kinematics, w)
 
     def check(self, scene):
         dt = jnp.result_type(float)

@@ -1,16 +1,19 @@
-"""The unrolled kernel: forward dynamics of a small tree as straight-line scalar arithmetic.
+"""The tree algorithm on scalars, written once for every scalar type.
 
-The tree's static structure (parents, joints, DoF parents) is known when the model is built,
-so for a small tree the whole of forward dynamics can be written out at trace time as one
-straight-line program over **scalars**: every 3-vector is a tuple of three scalars, every
-rotation a 3×3 tuple of tuples. Nothing has a "3" or an "n_body" axis. Traced on one state the
-program is pure scalar code that XLA fuses into a few loops; under ``jax.vmap`` every scalar
-becomes a contiguous ``(batch,)`` array, so every operation is one long SIMD loop over the
-batch (the batch is the innermost axis by construction) — no gathers, no ``(…, 3)`` arrays,
-no per-body kernel launches.
+The composite-rigid-body method with a tree-sparse factorisation, all in world axes about one
+reference point ``c0`` (the base point of body 0), written out at trace time for a model's
+static tree as straight-line arithmetic on **scalars**: every 3-vector is a tuple of three
+scalars, every rotation a 3×3 tuple of tuples. A scalar is whatever supports ``+ − × ÷``:
 
-The algorithm is the composite-rigid-body method with a tree-sparse factorisation, all in
-world axes about one reference point ``c0`` (the base point of body 0):
+* a JAX array of shape ``()`` (or ``(batch,)`` under ``vmap``): the unrolled JAX kernel,
+  :mod:`jaxbody.backends.unrolled`;
+* a symbol of the native kernel's tracer (:mod:`jaxbody.backends.native.symbolic`), whose
+  arithmetic emits C++: the native kernel's code generator;
+* the Python floats ``0.0``/``1.0``, structural constants known at trace time that the helpers
+  fold away, so terms that vanish by structure (a slide's angular part, the ground's velocity,
+  a free joint's unit translations, absent gravity or loads) never enter the program.
+
+The passes:
 
 1. **Kinematics**, root to leaves (MuJoCo's ``mj_kinematics``): body frames, joint anchors and
    axes, centres of mass, and the unit motion ``S_d = (ω_d, s_d)`` of every DoF in Plücker
@@ -24,20 +27,15 @@ world axes about one reference point ``c0`` (the base point of body 0):
    to ``c0``, ``I_k`` moved likewise); the subtree force ``F_k = Σ_{S(k)} (I_i A_i + V_i ×*
    I_i V_i − f_ext,i)``.
 4. **Joint space**: ``M_ab = S_a · (𝕀_k S_b)`` for DoF ``a`` supporting DoF ``b`` on body
-   ``k``, ``bias_d = S_d · F_k(d)``; armature on the diagonal.
+   ``k``, ``bias_d = S_d · F_k(d)``; armature on the diagonal (:func:`bias_and_mass`).
 5. **Tree-sparse LDLᵀ** (Featherstone's ``LTDL``): ``M = Lᵀ D L`` with the fill-in confined to
    each DoF's ancestor chain (``λ(d)``, the DoF parent, is static), then two sparse
-   triangular solves. No LAPACK call (safe under large ``vmap`` batches on CPU), no dense
-   ``n × n`` work beyond the tree's own sparsity.
+   triangular solves (:func:`ltdl_factor`, :func:`ltdl_substitute`, :func:`ltdl_solve`).
 
-Symbolic zeros (Python ``0.0``) are propagated at trace time, so terms that vanish by
-structure (a slide's angular part, the ground's velocity, a free joint's unit translations,
-absent gravity or loads) never enter the program.
-
-The program grows with the tree (it is unrolled), so it serves trees up to
-:data:`MAX_BODIES` bodies; larger trees use the vectorised kernel of
-:mod:`jaxbody.kernels`, whose trace size does not depend on the number of bodies. Both give the
-same numbers (tests compare them with each other and with MuJoCo).
+Besides forward dynamics: the energies (:func:`energies`), inverse dynamics by the
+Newton–Euler passes (:func:`inverse_dynamics`) and its hand-derived adjoint
+(:func:`inverse_dynamics_vjp`). The classical RK4 tableau (:data:`RK4_C`, :data:`RK4_A`,
+:data:`RK4_B`) is here once for the integrators that step these programs.
 """
 
 import functools
@@ -45,28 +43,35 @@ from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
-from ._types import Array, ArrayLike, Float
-from .joints import BALL, FREE, HINGE, SLIDE
-from .model import Model
+from .._types import Array
+from ..joints import BALL, FREE, HINGE, SLIDE
 
-__all__ = ["MAX_BODIES", "MAX_DOFS", "applies", "bias_forces", "energies", "forward_dynamics", "mass_matrix"]
+__all__ = [
+    "RK4_A",
+    "RK4_B",
+    "RK4_C",
+    "ZERO3",
+    "add",
+    "adjoint_applies",
+    "bias_and_mass",
+    "energies",
+    "inverse_dynamics",
+    "inverse_dynamics_vjp",
+    "ltdl_factor",
+    "ltdl_solve",
+    "ltdl_substitute",
+    "scalars",
+    "stack",
+]
 
-#: Largest tree (bodies, the world included) ``kernel="auto"`` gives the unrolled kernel on a
-#: backend other than the CPU (on the CPU it gives the native kernel, :mod:`jaxbody.native`); above
-#: it the vectorised kernel of :mod:`jaxbody.kernels` runs (compile time flat in the number of
-#: bodies). Measured (docs/performance.md): for the 8-body Panda arm the unrolled RK4 step is
-#: about 4x faster than the vectorised one and its batches 2.5x faster; for the 13-body,
-#: 18-DoF ANYmal C its single-state program compiles for minutes and runs 4x slower.
-MAX_BODIES = 12
-#: Largest number of DoFs ``kernel="auto"`` gives the unrolled kernel.
-MAX_DOFS = 12
-
-
-def applies(model: Model) -> bool:
-    """Whether the unrolled kernel serves ``model`` by default (size thresholds above)."""
-    return 0 < model.nv <= MAX_DOFS and model.n_body <= MAX_BODIES
+# ----------------------------------------------------------------------------- the RK4 tableau
+#: Nodes ``c_i`` of the classical fourth-order Runge–Kutta method (Butcher tableau).
+RK4_C = (0.0, 0.5, 0.5, 1.0)
+#: Stage coefficients ``a_ij`` (row ``i``: the weights of stages ``0 .. i−1``).
+RK4_A = ((), (0.5,), (0.0, 0.5), (0.0, 0.0, 1.0))
+#: Weights ``b_i`` of the stages in the step.
+RK4_B = (1 / 6, 1 / 3, 1 / 3, 1 / 6)
 
 
 # ----------------------------------------------------------------------------- scalar algebra
@@ -80,7 +85,7 @@ def _is1(a) -> bool:
     return type(a) is float and a == 1.0
 
 
-def _add(a, b):
+def add(a, b):
     if _is0(a):
         return b
     if _is0(b):
@@ -109,7 +114,7 @@ def _mul(a, b):
 def _sum(*terms):
     out = 0.0
     for t in terms:
-        out = _add(out, t)
+        out = add(out, t)
     return out
 
 
@@ -117,7 +122,7 @@ ZERO3 = (0.0, 0.0, 0.0)
 
 
 def _vadd(a, b):
-    return tuple(_add(x, y) for x, y in zip(a, b))
+    return tuple(add(x, y) for x, y in zip(a, b))
 
 
 def _vsub(a, b):
@@ -171,7 +176,7 @@ def _quat_matrix(w, x, y, z):
 
 
 def _cos(a):
-    # symbolic scalars (the native kernel's code generator, jaxbody.native) carry their own
+    # symbolic scalars (the native kernel's tracer, jaxbody.backends.native.symbolic) carry their own
     return a.cos() if getattr(a, "symbolic", False) else jnp.cos(a)
 
 
@@ -196,7 +201,7 @@ def _axis_angle(axis, angle):
     )
 
 
-def _scalars(x) -> list:
+def scalars(x) -> list:
     """A 1-D array as a list of scalars (one slice each, made once)."""
     return [x[i] for i in range(x.shape[0])]
 
@@ -239,12 +244,12 @@ def _sym_apply(K, w):
 
 
 def _spatial_dot(S, F):
-    return _add(_dot(S[0], F[0]), _dot(S[1], F[1]))
+    return add(_dot(S[0], F[0]), _dot(S[1], F[1]))
 
 
 # ----------------------------------------------------------------------------- structure
 # The passes below take ``model`` unannotated: a Model, or the native kernel's code generator's
-# stand-in whose parameters are symbols (jaxbody.native._SymbolicModel).
+# stand-in whose parameters are symbols (jaxbody.backends.native.symbolic.SymbolicModel).
 def _structure(model):
     """Static per-body joint lists and the DoF parent array ``λ`` (trace time, cached per tree)."""
     return _structure_of(model.joints, model.tree)
@@ -374,7 +379,7 @@ def _body_inertias(model, R, x, c0):
 
 
 def _inertia_add(a, b):
-    return (_add(a[0], b[0]), _vadd(a[1], b[1]), tuple(_add(x, y) for x, y in zip(a[2], b[2])))
+    return (add(a[0], b[0]), _vadd(a[1], b[1]), tuple(add(x, y) for x, y in zip(a[2], b[2])))
 
 
 def _dof_owners(model):
@@ -436,7 +441,7 @@ def _motions(model, S, v, gravity, want_acceleration=True, acceleration=None, pe
     return V, (A if want_acceleration else None)
 
 
-def _energies(model, q, v, gravity) -> tuple:
+def energies(model, q, v, gravity) -> tuple:
     """Kinetic energy ``T = ½ Σ_k V_k·(𝕀_k V_k) + ½ Σ_d a_d v_d²`` (armature ``a``) and the
     gravity potential ``−Σ_k m_k g·C_k`` on scalars (``gravity=None``: zero), as
     :func:`jaxbody.kernels.kinetic_energy` and the potential of :class:`jaxbody.Gravity`."""
@@ -447,9 +452,9 @@ def _energies(model, q, v, gravity) -> tuple:
     for b in range(model.n_body):
         if _is_zero3(V[b][0]) and _is_zero3(V[b][1]):
             continue
-        twice = _add(twice, _spatial_dot(V[b], _inertia_apply(inertia[b], V[b])))
+        twice = add(twice, _spatial_dot(V[b], _inertia_apply(inertia[b], V[b])))
     for d in range(model.nv):
-        twice = _add(twice, _mul(model.dof_armature[d], _mul(v[d], v[d])))
+        twice = add(twice, _mul(model.dof_armature[d], _mul(v[d], v[d])))
     kinetic = _mul(0.5, twice)
     potential = 0.0
     if gravity is not None:
@@ -458,14 +463,6 @@ def _energies(model, q, v, gravity) -> tuple:
     return kinetic, potential
 
 
-def energies(
-    model: Model, q: Float[ArrayLike, " nq"], v: Float[ArrayLike, " nv"], *, gravity: Float[ArrayLike, "3"] | None = None
-) -> tuple[Float[Array, ""], Float[Array, ""]]:
-    """``(kinetic energy, gravity potential)`` by the unrolled kernel (no checks; ``gravity=None``:
-    no potential)."""
-    dtype = model.body_pos.dtype
-    q_s, v_s, g, _ = _scalar_inputs(model, q, v, gravity, None)
-    return tuple(jnp.asarray(e, dtype) for e in _energies(model, q_s, v_s, g))
 
 
 def _body_force(inertia, V, A) -> tuple:
@@ -498,14 +495,14 @@ def _joint_forces(model, S, inertia, com, c0, V, A, external) -> list:
     return [_spatial_dot(S[d], F[dof_body[d]]) for d in range(model.nv)]
 
 
-def _inverse_dynamics(model, q, v, acceleration, gravity, external) -> list:
+def inverse_dynamics(model, q, v, acceleration, gravity, external) -> list:
     """``τ = M(q) a + bias(q, v)`` by the recursive Newton–Euler passes (armature included): the
     residual whose derivatives give those of forward dynamics (``∂a = M⁻¹ (∂τ − ∂_x τ)``)."""
     R, x, c0, S = _kinematics(model, q)
     inertia, com = _body_inertias(model, R, x, c0)
     V, A = _motions(model, S, v, gravity, acceleration=acceleration)
     tau = _joint_forces(model, S, inertia, com, c0, V, A, external)
-    return [_add(t, _mul(model.dof_armature[d], acceleration[d])) for d, t in enumerate(tau)]
+    return [add(t, _mul(model.dof_armature[d], acceleration[d])) for d, t in enumerate(tau)]
 
 
 def _spatial_add(a, b):
@@ -521,13 +518,13 @@ def _spatial_scale(s, a):
 
 
 def adjoint_applies(joints) -> bool:
-    """Whether :func:`_inverse_dynamics_vjp` serves a tree with these joints: hinges and slides
+    """Whether :func:`inverse_dynamics_vjp` serves a tree with these joints: hinges and slides
     only (one DoF each, the reference point ``c0`` fixed)."""
     return all(int(t) in (HINGE, SLIDE) for t in joints.type)
 
 
-def _inverse_dynamics_vjp(model, q, v, acceleration, gravity, lam) -> tuple[list, list]:
-    """``λᵀ ∂τ/∂q`` and ``λᵀ ∂τ/∂v`` of ``τ = `` :func:`_inverse_dynamics` ``(q, v, a)`` with
+def inverse_dynamics_vjp(model, q, v, acceleration, gravity, lam) -> tuple[list, list]:
+    """``λᵀ ∂τ/∂q`` and ``λᵀ ∂τ/∂v`` of ``τ = `` :func:`inverse_dynamics` ``(q, v, a)`` with
     ``a`` held, for trees of hinge and slide joints (:func:`adjoint_applies`), no body loads.
 
     Derived by hand, not by reverse mode through the Newton–Euler passes. Write
@@ -592,15 +589,15 @@ def _inverse_dynamics_vjp(model, q, v, acceleration, gravity, lam) -> tuple[list
         # S·(m ×* f) = −(m × S)·f turns each projected force cross product into a motion cross
         # product with S (or with Sdot = V⁻ × S, already computed) dotted with a subtree sum
         GY = _spatial_add(_motion_cross(before["A+"][d], Sd), _motion_cross(Vp, Sdot))
-        q_bar[joints.qposadr[j]] = _add(
-            _add(_spatial_dot(_motion_cross(lam_before["V-"][d], Sd), F[b]), _spatial_dot(GY, G[b])),
+        q_bar[joints.qposadr[j]] = add(
+            add(_spatial_dot(_motion_cross(lam_before["V-"][d], Sd), F[b]), _spatial_dot(GY, G[b])),
             _spatial_dot(Sdot, Y[b]),
         )
-        v_bar[d] = _add(_spatial_dot(Sd, Y[b]), _mul(2.0, _spatial_dot(Sdot, G[b])))
+        v_bar[d] = add(_spatial_dot(Sd, Y[b]), _mul(2.0, _spatial_dot(Sdot, G[b])))
     return q_bar, v_bar
 
 
-def _bias_and_mass(model, q, v, gravity, external, want_bias=True):
+def bias_and_mass(model, q, v, gravity, external, want_bias=True):
     """Joint-space ``M`` (dict over the tree's nonzero lower triangle) and ``bias`` (list)."""
     joints = model.joints
     nb, nv = model.n_body, model.nv
@@ -629,11 +626,11 @@ def _bias_and_mass(model, q, v, gravity, external, want_bias=True):
             M[e, d] = _spatial_dot(S[d], Fe)
             d = dof_parent[d]
     for d in range(nv):
-        M[d, d] = _add(M[d, d], model.dof_armature[d])
+        M[d, d] = add(M[d, d], model.dof_armature[d])
     return M, bias, dof_parent
 
 
-def _ltdl_factor(M: dict, dof_parent: Sequence[int]) -> tuple[dict, list]:
+def ltdl_factor(M: dict, dof_parent: Sequence[int]) -> tuple[dict, list]:
     """Featherstone's tree-sparse ``M = Lᵀ D L``: the strictly lower entries of ``L`` (dict over
     the tree's nonzero pattern) and ``D⁻¹`` (list)."""
     n = max(k for k, _ in M) + 1
@@ -654,8 +651,8 @@ def _ltdl_factor(M: dict, dof_parent: Sequence[int]) -> tuple[dict, list]:
     return {(i, j): m for (i, j), m in M.items() if i != j}, inv_d
 
 
-def _ltdl_substitute(L: dict, inv_d: list, dof_parent: Sequence[int], b: list) -> list:
-    """Solve ``Lᵀ D L x = b`` with the factor of :func:`_ltdl_factor`."""
+def ltdl_substitute(L: dict, inv_d: list, dof_parent: Sequence[int], b: list) -> list:
+    """Solve ``Lᵀ D L x = b`` with the factor of :func:`ltdl_factor`."""
     n = len(b)
     lam = dof_parent
     x = list(b)
@@ -673,79 +670,13 @@ def _ltdl_substitute(L: dict, inv_d: list, dof_parent: Sequence[int], b: list) -
     return x
 
 
-def _ltdl_solve(M: dict, dof_parent: Sequence[int], b: list) -> list:
+def ltdl_solve(M: dict, dof_parent: Sequence[int], b: list) -> list:
     """Solve ``M x = b`` with Featherstone's tree-sparse ``M = Lᵀ D L``."""
-    return _ltdl_substitute(*_ltdl_factor(M, dof_parent), dof_parent, b)
+    return ltdl_substitute(*ltdl_factor(M, dof_parent), dof_parent, b)
 
 
-def _stack(values: list, dtype) -> Array:
+def stack(values: list, dtype) -> Array:
     # The scalars are materialised before they are stacked: fused into the concatenation, XLA
     # evaluates the work they share once per element of the stack (on a GPU, three such
     # fusions took half of a batched RK4 step, benchmarks/results/step_profile_gpu.md).
     return jnp.stack(jax.lax.optimization_barrier([jnp.asarray(v, dtype) for v in values]))
-
-
-def _scalar_inputs(model: Model, q, v, gravity, external):
-    """The state, gravity and body loads as the scalar lists and tuples the passes take."""
-    dtype = model.body_pos.dtype
-    q = _scalars(jnp.asarray(q, dtype))
-    v = _scalars(jnp.asarray(v, dtype))
-    g = None if gravity is None else tuple(_scalars(jnp.asarray(gravity, dtype)))
-    if external is None:
-        return q, v, g, None
-    external = jnp.asarray(external, dtype)
-    return q, v, g, [tuple(external[b, i] for i in range(6)) for b in range(external.shape[0])]
-
-
-def forward_dynamics(
-    model: Model,
-    q: Float[ArrayLike, " nq"],
-    v: Float[ArrayLike, " nv"],
-    force: Float[ArrayLike, " nv"] | None = None,
-    *,
-    gravity: Float[ArrayLike, "3"] | None = None,
-    external: Float[ArrayLike, "n_body 6"] | None = None,
-) -> Float[Array, " nv"]:
-    """``a = M⁻¹ (force − bias)`` by the unrolled kernel (no checks; module docstring).
-
-    Args:
-        model: the model (any size; the program grows with it, see :data:`MAX_BODIES`).
-        q, v: the state.
-        force: generalized force in the layout of ``v`` (drives, springs, dampers, …);
-            ``None`` = zero.
-        gravity: uniform field acting on every body (world, m/s²); ``None`` = none (pass
-            ``model.gravity`` for the model's own).
-        external: ``(n_body, 6)`` world force and torque at each centre of mass
-            (MuJoCo ``xfrc_applied``); ``None`` = none.
-    """
-    dtype = model.body_pos.dtype
-    M, bias, lam = _bias_and_mass(model, *_scalar_inputs(model, q, v, gravity, external))
-    rhs = [-bi for bi in bias]
-    if force is not None:
-        f = _scalars(jnp.asarray(force, dtype))
-        rhs = [_add(fi, ri) for fi, ri in zip(f, rhs)]
-    return _stack(_ltdl_solve(M, lam, rhs), dtype)
-
-
-def mass_matrix(model: Model, q: Float[ArrayLike, " nq"]) -> Float[Array, "nv nv"]:
-    """Joint-space mass matrix by the unrolled kernel (armature included; no checks)."""
-    dtype = model.body_pos.dtype
-    q = jnp.asarray(q, dtype)
-    M, _, _ = _bias_and_mass(model, _scalars(q), [0.0] * model.nv, None, None, want_bias=False)
-    nv = model.nv
-    zero = jnp.zeros((), dtype)
-    rows = [[M.get((max(a, b), min(a, b)), zero) for b in range(nv)] for a in range(nv)]
-    return jnp.stack([_stack(r, dtype) for r in rows])
-
-
-def bias_forces(
-    model: Model,
-    q: Float[ArrayLike, " nq"],
-    v: Float[ArrayLike, " nv"],
-    *,
-    gravity: Float[ArrayLike, "3"] | None = None,
-    external: Float[ArrayLike, "n_body 6"] | None = None,
-) -> Float[Array, " nv"]:
-    """``bias − Jᵀ external`` by the unrolled kernel (``gravity=None``: no gravity; no checks)."""
-    _, bias, _ = _bias_and_mass(model, *_scalar_inputs(model, q, v, gravity, external))
-    return _stack(bias, model.body_pos.dtype)

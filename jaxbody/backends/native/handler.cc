@@ -1,0 +1,129 @@
+
+#include <atomic>
+#include <chrono>
+#include <condition_variable>
+#include <mutex>
+#include <thread>
+#include <vector>
+#include "xla/ffi/api/ffi.h"
+@COMMON@
+namespace ffi = xla::ffi;
+constexpr ffi::DataType DT = @DT@;
+
+// A persistent pool: a batch is cut into as many slices as threads; the calling thread runs
+// the first, the workers the others (starting threads on every call would cost as much as a
+// few hundred states). Between calls the workers spin (yielding the core to any other
+// runnable thread) for up to SPIN_NS before they sleep on a condition variable, and so does the
+// caller waiting for them: the next call of a simulation comes a few tens of microseconds after
+// the last (the integrator's own work on the batch), and waking a sleeping thread costs as much
+// on a virtual machine. Every worker acknowledges every call, so a call's fields stay valid
+// until all of them have read them.
+class Pool {
+ public:
+  void run(Range range, const Inputs* in, int64_t batch, int64_t threads) {
+    std::lock_guard<std::mutex> call(call_);  // one batch at a time (XLA may call from several devices)
+    grow(threads - 1);
+    const int64_t chunk = (batch + threads - 1) / threads;
+    range_ = range, in_ = in, batch_ = batch, chunk_ = chunk, slices_ = threads;
+    pending_.store(int64_t(workers_.size()), std::memory_order_relaxed);
+    {
+      std::lock_guard<std::mutex> lock(m_);
+      generation_.fetch_add(1, std::memory_order_release);  // publishes the fields above
+    }
+    cv_.notify_all();  // no system call when every worker is spinning
+    range(in, 0, chunk < batch ? chunk : batch);
+    if (!spin([&] { return pending_.load(std::memory_order_acquire) == 0; })) {
+      std::unique_lock<std::mutex> lock(m_);
+      done_.wait(lock, [&] { return pending_.load(std::memory_order_acquire) == 0; });
+    }
+  }
+
+ private:
+  static constexpr int64_t SPIN_NS = @SPIN_NS@;
+  template <class Ready>
+  static bool spin(Ready ready) {
+    if (ready()) return true;
+    const auto until = std::chrono::steady_clock::now() + std::chrono::nanoseconds(SPIN_NS);
+    for (;;) {
+      for (int k = 0; k < 16; ++k) {
+        if (ready()) return true;
+#if defined(__x86_64__) || defined(__i386__)
+        __builtin_ia32_pause();
+#endif
+      }
+      if (std::chrono::steady_clock::now() > until) return ready();
+      std::this_thread::yield();  // a core shared with other work gets it back at once
+    }
+  }
+  void grow(int64_t n) {
+    while (int64_t(workers_.size()) < n) {
+      const int64_t slot = int64_t(workers_.size()) + 1;
+      // a new worker starts at the calls made so far: the next one is its first
+      const uint64_t seen = generation_.load(std::memory_order_relaxed);
+      workers_.emplace_back([this, slot, seen] { work(slot, seen); });
+      workers_.back().detach();
+    }
+  }
+  void work(int64_t slot, uint64_t seen) {
+    for (;;) {
+      auto fresh = [&] { return generation_.load(std::memory_order_acquire) != seen; };
+      if (!spin(fresh)) {
+        std::unique_lock<std::mutex> lock(m_);
+        cv_.wait(lock, fresh);
+      }
+      seen = generation_.load(std::memory_order_acquire);
+      if (slot < slices_) {
+        const int64_t b0 = slot * chunk_, b1 = b0 + chunk_ < batch_ ? b0 + chunk_ : batch_;
+        if (b0 < b1) range_(in_, b0, b1);
+      }
+      if (pending_.fetch_sub(1, std::memory_order_acq_rel) == 1) {
+        std::lock_guard<std::mutex> lock(m_);  // the caller checks pending_ under m_ before it sleeps
+        done_.notify_one();
+      }
+    }
+  }
+  std::mutex call_, m_;
+  std::condition_variable cv_, done_;
+  std::vector<std::thread> workers_;
+  Range range_ = nullptr;
+  const Inputs* in_ = nullptr;
+  int64_t batch_ = 0, chunk_ = 0, slices_ = 0;
+  std::atomic<int64_t> pending_{0};
+  std::atomic<uint64_t> generation_{0};
+};
+
+static Pool* pool() {
+  static Pool* p = new Pool();  // never destroyed: workers outlive static destruction
+  return p;
+}
+
+static ffi::Error fd_impl(ffi::RemainingArgs args, ffi::RemainingRets rets, int64_t kernel, int64_t threads) {
+  const Range range = reinterpret_cast<Range>(kernel);
+  if (args.size() > MAX_IN || rets.size() > MAX_OUT || rets.size() == 0)
+    return ffi::Error(ffi::ErrorCode::kInvalidArgument, "jaxbody native kernel: too many operands");
+  Inputs in{};
+  for (size_t k = 0; k < args.size(); ++k) {
+    auto x = args.get<ffi::AnyBuffer>(k);
+    if (x.has_error()) return x.error();
+    if (x->element_type() != DT || x->dimensions().size() != 2)
+      return ffi::Error(ffi::ErrorCode::kInvalidArgument, "jaxbody native kernel: operands are 2-D, of the kernel's dtype");
+    in.x[k] = static_cast<const T*>(x->untyped_data());
+    in.s[k] = x->dimensions()[0] == 1 ? 0 : x->dimensions()[1];
+  }
+  int64_t batch = 0;
+  for (size_t j = 0; j < rets.size(); ++j) {
+    auto y = rets.get<ffi::AnyBuffer>(j);
+    if (y.has_error()) return y.error();
+    in.y[j] = static_cast<T*>((*y)->untyped_data());
+    batch = (*y)->dimensions()[0];
+    in.n[j] = (*y)->dimensions()[1];
+  }
+  // one slice per thread for batches worth it (at least 64 states a slice)
+  int64_t n = threads < batch / 64 ? threads : batch / 64;
+  if (n <= 1) range(&in, 0, batch);
+  else pool()->run(range, &in, batch, n);
+  return ffi::Error::Success();
+}
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(jaxbody_fd, fd_impl,
+                              ffi::Ffi::Bind().RemainingArgs().RemainingRets().Attr<int64_t>("kernel").Attr<int64_t>("threads"));

@@ -1,0 +1,125 @@
+"""Whole fixed-step RK4 solves in one native call, and their reverse sweep."""
+
+import jax.numpy as jnp
+import numpy as np
+
+from ..._types import Array, ArrayLike, Float
+from ...model import Model
+from .symbolic import parameter_vector
+from .build import compiled_kernel
+
+# ----------------------------------------------------------------------------- a whole solve
+def rk4_rollout(
+    model: Model,
+    q: Float[ArrayLike, " nq"],
+    v: Float[ArrayLike, " nv"],
+    t0: ArrayLike,
+    t1: ArrayLike,
+    dt0: ArrayLike,
+    max_steps: int | None = None,
+    force: Float[ArrayLike, " nv"] | None = None,
+    *,
+    gravity: Float[ArrayLike, "3"] | None = None,
+    stiffness: Float[ArrayLike, " n_joint"] | None = None,
+    reference: Float[ArrayLike, " nq"] | None = None,
+    damping: Float[ArrayLike, " nv"] | None = None,
+    work0: ArrayLike = 0.0,
+    frozen: ArrayLike = False,
+) -> tuple[Array, Array, Array, Array, Array, Array]:
+    """A fixed-step RK4 solve from ``t0`` to ``t1`` in one native call.
+
+    The steps are those of :func:`jaxbody.simulate` with ``solver="rk4"`` and ``dt0`` (diffrax's
+    constant step size): ``N = ceil((t1 − t0) / dt0)`` steps ending at ``t_k = t0 + (t1 − t0)·k/N``,
+    each one :func:`rk4_step` (same field: ``force``, ``gravity``, springs and dampers held),
+    the quaternions of ball and free joints renormalised after every step. A step whose result
+    is not finite ends that trajectory there (its state is that step's); ``max_steps`` (``None``:
+    no bound) ends it after that many steps. ``work0``: the dampers' work at ``t0``; ``frozen``:
+    take the steps without moving (as :func:`jaxbody.simulate` does for an input that failed
+    its checks with ``throw=False``).
+
+    Returns ``(q, v, work, t, steps, failed)``: the final state, the dampers' work there, the
+    time reached (``t1``, or the end of the last step taken), the steps taken, and whether a step
+    was not finite. A ``vmap`` batch is one call (split over the CPU cores), each state with its
+    own times. No derivatives: :func:`jaxbody.simulate` differentiates through its
+    step-by-step solve, which computes the same values. No checks; ``t1 >= t0``.
+    """
+    rows = _rollout_rows(model, q, v, t0, t1, dt0, max_steps, force, gravity, stiffness, reference, damping, work0,
+                         frozen, 1)
+    kernel = compiled_kernel(model.tree, model.joints, False, np.dtype(model.body_pos.dtype), "rk4_run")
+    return _rollout_outputs(kernel.batched(*rows))
+
+
+def _rollout_rows(model, q, v, t0, t1, dt0, max_steps, force, gravity, stiffness, reference, damping, work0, frozen,
+                  every) -> tuple:
+    """The operands of the ``"rk4_run"`` programs (:data:`_RUN_SLOTS`), as ``(1, n)`` rows."""
+    from equinox.internal import nextafter, prevbefore
+
+    dtype = model.body_pos.dtype
+    q = jnp.asarray(q, dtype)
+    v = jnp.asarray(v, dtype)
+    t0, t1, dt0 = (jnp.asarray(x, dtype) for x in (t0, t1, dt0))
+    force = jnp.zeros(model.nv, dtype) if force is None else jnp.asarray(force, dtype)
+    gravity = jnp.zeros(3, dtype) if gravity is None else jnp.asarray(gravity, dtype)
+    stiffness = jnp.zeros(model.joints.n_joint, dtype) if stiffness is None else jnp.asarray(stiffness, dtype)
+    reference = jnp.zeros(model.nq, dtype) if reference is None else jnp.asarray(reference, dtype)
+    damping = jnp.zeros(model.nv, dtype) if damping is None else jnp.asarray(damping, dtype)
+    # diffrax's ConstantStepSize: the step count, and the time 100 ulp below t1 above which a
+    # step's end is rounded to t1
+    steps = jnp.ceil((t1 - t0) / nextafter(dt0))
+    t1_floor = t1
+    for _ in range(100):
+        t1_floor = prevbefore(t1_floor)
+    limit = jnp.asarray(np.inf if max_steps is None else max_steps, dtype)
+    schedule = jnp.stack([t0, t1, steps, t1_floor, limit, dt0, jnp.asarray(frozen, dtype), jnp.asarray(every, dtype)])
+    row = lambda x: jnp.reshape(x, (1, -1))  # noqa: E731
+    return (row(q), row(v), row(force), row(parameter_vector(model)), row(gravity), jnp.zeros((1, 1), dtype),
+            row(stiffness), row(reference), row(damping), row(jnp.asarray(work0, dtype)), row(schedule))
+
+
+def _rollout_outputs(outs) -> tuple:
+    q1, v1, w1, status = (o[0] for o in outs[:4])
+    return q1, v1, w1[0], status[0], status[1].astype(jnp.int32), status[2] > 0
+
+
+def checkpoint_layout(model: Model, max_steps: int, checkpoints: int) -> tuple[int, int]:
+    """``(every, width)``: steps between the checkpoints of a solve of at most ``max_steps``
+    steps kept in ``checkpoints`` slots, and the width of their row (each: ``q``, ``v`` and the
+    step's two times)."""
+    every = max(1, -(-max_steps // max(checkpoints, 1)))
+    slots = -(-max_steps // every)
+    return every, slots * (model.nq + model.nv + 2)
+
+
+def rk4_rollout_checkpointed(model: Model, q, v, t0, t1, dt0, max_steps: int, checkpoints: int, force=None, *,
+                             gravity=None, stiffness=None, reference=None, damping=None, work0=0.0, frozen=False):
+    """:func:`rk4_rollout` (bounded ``max_steps``) that also returns the checkpoints of its
+    reverse sweep (:func:`rk4_rollout_vjp`): the state every ``every`` steps, ``every`` the
+    fewest steps that fit ``max_steps`` into ``checkpoints`` slots (:func:`checkpoint_layout`).
+    Returns ``(q, v, work, t, steps, failed, checkpoints)``."""
+    every, width = checkpoint_layout(model, max_steps, checkpoints)
+    rows = _rollout_rows(model, q, v, t0, t1, dt0, max_steps, force, gravity, stiffness, reference, damping, work0,
+                         frozen, every)
+    kernel = compiled_kernel(model.tree, model.joints, False, np.dtype(model.body_pos.dtype), "rk4_run")
+    outs = kernel.batched_with(kernel.widths + (width,))(*rows)
+    return _rollout_outputs(outs) + (outs[4][0],)
+
+
+def rk4_rollout_vjp(model: Model, q, v, t0, t1, dt0, max_steps: int, checkpoints: int, saved, steps, cotangent_q,
+                    cotangent_v, cotangent_work=0.0, force=None, *, gravity=None, stiffness=None, reference=None,
+                    damping=None, frozen=False):
+    """Reverse mode of :func:`rk4_rollout` with respect to the initial ``(q, v)``, in one native call.
+
+    ``saved``, ``steps``: the checkpoints and the steps taken, from
+    :func:`rk4_rollout_checkpointed` with the same arguments; ``cotangent_*``: of the final ``q``,
+    ``v`` and work. The steps between two checkpoints are recomputed (the same program as the
+    solve's), then each step's generated reverse-mode program carries the cotangents back.
+    Returns the cotangents of ``(q, v)``. A frozen trajectory passes them through."""
+    every, _ = checkpoint_layout(model, max_steps, checkpoints)
+    rows = _rollout_rows(model, q, v, t0, t1, dt0, max_steps, force, gravity, stiffness, reference, damping, 0.0,
+                         frozen, every)
+    dtype = model.body_pos.dtype
+    row = lambda x: jnp.reshape(jnp.asarray(x, dtype), (1, -1))  # noqa: E731
+    status = jnp.stack([jnp.zeros((), dtype), jnp.asarray(steps, dtype), jnp.zeros((), dtype)])
+    kernel = compiled_kernel(model.tree, model.joints, False, np.dtype(dtype), "rk4_run_vjp")
+    ct_q, ct_v = kernel.batched(*rows, row(saved), row(status), row(cotangent_q), row(cotangent_v), row(cotangent_work))
+    return ct_q[0], ct_v[0]
