@@ -44,7 +44,7 @@ def main(argv=None):
     import numpy as np
 
     import jaxbody as jb
-    from jaxbody import kernels
+    from jaxbody import backends
 
     import tempfile
 
@@ -61,7 +61,7 @@ def main(argv=None):
 
     for kernel in args.kernels.split(","):
         def fd(q, v, kernel=kernel):
-            return kernels.acceleration(model, q, v, tau, gravity=model.gravity, kernel=kernel)
+            return backends.acceleration(model, q, v, tau, gravity=model.gravity, kernel=kernel)
 
         pieces = {
             "forward": jax.jit(fd),
@@ -127,14 +127,15 @@ def _rollout_pieces(args, model, q, v, tau, w):
     import numpy as np
 
     import jaxbody as jb
-    from jaxbody import kernels, native
+    from jaxbody import backends
+    from jaxbody.backends import native
     from jaxbody.simulation import RK4Stages
 
     steps, dt = 1000, 1e-3
     per_step = lambda fn: 1e6 * time_per_call(lambda: jax.block_until_ready(fn()), min_time=args.min_time)["median_s"] / steps  # noqa: E731
 
     def fd(q, v):
-        return kernels.acceleration(model, q, v, tau, gravity=model.gravity, kernel="native")
+        return backends.acceleration(model, q, v, tau, gravity=model.gravity, kernel="native")
 
     def vjp_step(i, c):
         _, pullback = jax.vjp(fd, c[0], c[1])

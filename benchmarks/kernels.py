@@ -41,7 +41,7 @@ def measure(name, args, tmp):
     from mujoco import rollout
 
     import jaxbody as jb
-    from jaxbody import kernels
+    from jaxbody import backends, kernels
 
     path = model_path(name, args.models_dir, tmp)
     model = jb.from_mjcf(str(path))
@@ -54,7 +54,7 @@ def measure(name, args, tmp):
     def rk4(kernel):
         def acc(q, v):
             force = kernels.passive_forces_at(model, q, v)
-            return kernels.acceleration(model, q, v, force, gravity=model.gravity, kernel=kernel)
+            return backends.acceleration(model, q, v, force, gravity=model.gravity, kernel=kernel)
 
         def f(q, v):
             return jb.kinematics.qpos_rate(model, q, v), acc(q, v)

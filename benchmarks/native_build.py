@@ -8,7 +8,7 @@ dynamics (``fd``), its forward-mode derivative (``jvp``) and its reverse-mode de
     .venv/bin/python benchmarks/native_build.py [--models panda,chain7,chain12,chain20]
 
 This is a one-time cost per tree (the libraries are cached in ``$JAXBODY_CACHE_DIR``); it is
-what sets :data:`jaxbody.native.MAX_DOFS` and :data:`jaxbody.native.MAX_DERIVATIVE_DOFS`.
+what sets :data:`jaxbody.backends.native.MAX_DOFS` and :data:`jaxbody.backends.native.MAX_DERIVATIVE_DOFS`.
 Writes ``benchmarks/results/<name>.{md,json}`` (default ``native_build``).
 """
 
@@ -42,7 +42,7 @@ def main(argv=None):
     import numpy as np
 
     import jaxbody as jb
-    from jaxbody import native
+    from jaxbody.backends import native
 
     with tempfile.TemporaryDirectory() as tmp:
         os.environ["JAXBODY_CACHE_DIR"] = tmp  # nothing cached: every build compiles
@@ -54,10 +54,10 @@ def main(argv=None):
             for mode in args.modes.split(","):
                 # the 256-bit-lane build (small batches; single states and batches of
                 # native.WIDE_BATCH and more get other builds of the same source: native.BUILDS)
-                source = native._generate(model.tree, model.joints, False, np.float64, mode).replace(
+                source = native.codegen.generate(model.tree, model.joints, False, np.float64, mode).replace(
                     "@VECTOR_BYTES@", native.BUILDS["narrow"])
                 t = time.perf_counter()
-                native._build(source, f"probe_{mode}")
+                native.build.build_library(source, f"probe_{mode}")
                 seconds = time.perf_counter() - t
                 row = {"model": name, "nv": int(model.nv), "program": mode, "lines": source.count("\n"), "compile_s": seconds}
                 rec["rows"].append(row)
@@ -74,7 +74,7 @@ def main(argv=None):
         stamp_markdown(rec["stamp"]),
         "",
         "Each program generated for float64 without body loads and compiled from scratch with the "
-        "kernel's flags (`jaxbody.native._FLAGS`); `fd` is built on a tree's first use, `jvp`/`vjp` "
+        "kernel's flags (`jaxbody.backends.native.build.COMPILER_FLAGS`); `fd` is built on a tree's first use, `jvp`/`vjp` "
         "on its first derivative (trees up to `MAX_DERIVATIVE_DOFS`).",
         "",
         markdown_table(["model", "nv", "program", "lines", "compile s"], rows),

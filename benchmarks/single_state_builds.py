@@ -6,7 +6,7 @@ ran the program in 256-bit lanes (one lane used). This times, per step of a 1000
 one state (float64, dt = 1e-3), the two ways of running a single state, compiled in one process
 and timed in interleaved pairs:
 
-* ``step``: a jitted ``lax.fori_loop`` of ``jaxbody.native.rk4_step`` (the generated RK4 step);
+* ``step``: a jitted ``lax.fori_loop`` of ``jaxbody.backends.native.rk4_step`` (the generated RK4 step);
 * ``step_vjp``: the same loop through ``jax.vjp`` of the step (its generated reverse-mode
   program; the value is unused);
 * ``simulate``: ``jb.simulate(jb.scene(model, kernel="native"), ..., solver="rk4")`` with
@@ -59,11 +59,11 @@ def main(argv=None):
     import numpy as np
 
     import jaxbody as jb
-    from jaxbody import native
+    from jaxbody.backends import native
 
     from dynamics import model_path
 
-    address = native._Kernel.address  # picks the scalar build for one state
+    address = native.build.Kernel.address  # picks the scalar build for one state
 
     def lanes_256(self, build):
         return address(self, "narrow")  # 256-bit lanes: how single states ran before
@@ -102,11 +102,11 @@ def main(argv=None):
             return {k: jax.jit(f).lower(q, v).compile() for k, f in fns.items()}
 
         jax.clear_caches()
-        native._Kernel.address = lanes_256
+        native.build.Kernel.address = lanes_256
         try:
             before = compiled()
         finally:
-            native._Kernel.address = address
+            native.build.Kernel.address = address
         jax.clear_caches()
         now = compiled()
         for piece in PIECES:
@@ -134,7 +134,7 @@ def main(argv=None):
         stamp_markdown(rec["stamp"]),
         "",
         f"Microseconds per step of a {STEPS}-step rollout of one state, float64, dt = {DT}; medians of "
-        f"{args.pairs} interleaved pairs. `step`: a jitted `lax.fori_loop` of `jaxbody.native.rk4_step`; "
+        f"{args.pairs} interleaved pairs. `step`: a jitted `lax.fori_loop` of `jaxbody.backends.native.rk4_step`; "
         "`step_vjp`: the same through `jax.vjp` (the step's reverse-mode program); `simulate`: "
         "`jb.simulate` (RK4, `SaveAt(t1=True)`, native kernel); `gradient`: `jax.grad` of a loss on its "
         "final state (checkpointed adjoint). `256-bit`: the generated source built with 256-bit lanes "

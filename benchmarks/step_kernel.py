@@ -2,7 +2,7 @@
 
 For each model and batch this times, per state and step:
 
-* ``kernel``: a jitted ``lax.fori_loop`` of ``jaxbody.native.rk4_step`` over the batch (one
+* ``kernel``: a jitted ``lax.fori_loop`` of ``jaxbody.backends.native.rk4_step`` over the batch (one
   native call per step and nothing else: the generated program, the FFI call, the thread pool);
 * ``simulate``: ``jb.simulate(jb.scene(model, kernel="auto"), ..., solver="rk4")`` vmapped
   over the same batch, the model a traced argument as in ``throughput.py`` (the same step plus
@@ -59,7 +59,7 @@ def main(argv=None):
     import numpy as np
 
     import jaxbody as jb
-    from jaxbody import native
+    from jaxbody.backends import native
 
     rec["native_threads"] = native.threads()
     rec["native_spin_ns"] = int(os.environ.get("JAXBODY_NATIVE_SPIN_NS", native.SPIN_NS))
@@ -145,7 +145,7 @@ def main(argv=None):
         stamp_markdown(rec["stamp"]),
         "",
         f"Nanoseconds per state and step, {STEPS} steps per call, dt = {DT}. `kernel`: a jitted "
-        "`lax.fori_loop` of `jaxbody.native.rk4_step` over the batch. `simulate`: `jb.simulate` "
+        "`lax.fori_loop` of `jaxbody.backends.native.rk4_step` over the batch. `simulate`: `jb.simulate` "
         "(RK4, the model a traced argument) vmapped over the batch. `energy`: one evaluation of the "
         "scene's total energy per state (nanoseconds per state, not per step), which `jb.simulate` "
         "evaluates at every saved time (here once, at t1). Both precisions of each piece are timed "

@@ -1,6 +1,6 @@
 """Time a jitted loop of the generated RK4 step over a batch, alone, for a profiler.
 
-``jaxbody.native.rk4_step`` of the Panda arm (or another shipped robot, or a chain of N hinge
+``jaxbody.backends.native.rk4_step`` of the Panda arm (or another shipped robot, or a chain of N hinge
 links, ``--model chainN``) over ``--batch``
 states, 50 steps per call in a ``lax.fori_loop``, called for ``--seconds``; prints nanoseconds
 per state and step. Nothing else runs in the loop, so a sampling profiler sees the generated
@@ -42,7 +42,7 @@ def main(argv=None):
     import numpy as np
 
     import jaxbody as jb
-    from jaxbody import native
+    from jaxbody.backends import native
 
     dtype = jnp.dtype(args.dtype)
     with warnings.catch_warnings(), tempfile.TemporaryDirectory() as tmp:

@@ -234,7 +234,7 @@ def worker_pairs(cfg, rec):
             row[f"compile_{name}"] = t
             row[f"steps_{name}"] = steps = int(np.max(np.asarray(out[2])))
             row[f"finite_{name}"] = bool(np.isfinite(np.asarray(out[0])).all() and np.isfinite(np.asarray(out[1])).all())
-            row[f"kernel_{name}"] = jb.kernels.resolve_kernel(model, cfg.get("kernel"))
+            row[f"kernel_{name}"] = jb.backends.resolve_kernel(model, cfg.get("kernel"))
             calls[name] = (lambda f=jitted, a=args: jax.block_until_ready(f(*a))), steps
         rec.save()
         for _ in range(cfg["pairs"]):
@@ -270,7 +270,7 @@ def worker_jaxbody(cfg, rec):
         model = jb.from_mujoco(m, dtype=dtype)
     rec.data.update(dtype=cfg["dtype"], devices=[str(d) for d in jax.devices()], nq=int(m.nq), nv=int(m.nv),
                     device_kind=jax.devices()[0].device_kind, backend=jax.default_backend(),
-                    kernel=jb.kernels.resolve_kernel(model, cfg.get("kernel")))
+                    kernel=jb.backends.resolve_kernel(model, cfg.get("kernel")))
     rep = dict(min_time=cfg["min_time"], repeats=cfg["repeats"])
     rollout = _simulate_rollout(jb, diffrax, cfg)
 
