@@ -339,9 +339,7 @@ def _quat_log_diff(qa, qb):
     return d[..., 1:] * scale
 
 
-def spring_displacements(
-    model: Model, q: Float[Array, " nq"]
-) -> list[tuple[np.ndarray, Float[Array, "n 3"], Float[Array, " n"]]]:
+def spring_displacements(model: Model, q: Float[Array, " nq"]) -> list[tuple[np.ndarray, Array, Array]]:
     """Joint-spring displacements ``q ⊖ q_spring`` from the spring reference, per joint kind.
 
     A list of ``(dofs, displacement, stiffness)``: the DoF indices ``(n, m)`` the displacement

@@ -347,7 +347,7 @@ def _explicit_zero_bias(model, data):
         model.tree, aug.subtree_mass, aug.static_moment, aug.augmented_inertia, data.link,
         motion.angular_velocity, motion.angular_acceleration, zero, zero, zero, model.gravity, zero, zero,
     )
-    return jb.kernels._project(model, data, f)
+    return jb.kernels.project_force_factors(model, data, f)
 
 
 def test_terms_the_joints_make_zero_are_left_out_of_the_program():

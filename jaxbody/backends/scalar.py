@@ -86,6 +86,7 @@ def _is1(a) -> bool:
 
 
 def add(a, b):
+    """``a + b`` with the structural zero ``0.0`` folded away."""
     if _is0(a):
         return b
     if _is0(b):
@@ -676,6 +677,7 @@ def ltdl_solve(M: dict, dof_parent: Sequence[int], b: list) -> list:
 
 
 def stack(values: list, dtype) -> Array:
+    """The scalars ``values`` as one JAX array of ``dtype`` (an optimisation barrier first)."""
     # The scalars are materialised before they are stacked: fused into the concatenation, XLA
     # evaluates the work they share once per element of the stack (on a GPU, three such
     # fusions took half of a batched RK4 step, benchmarks/results/step_profile_gpu.md).

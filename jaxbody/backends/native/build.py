@@ -244,5 +244,6 @@ def _has_avx512() -> bool:
 
 @functools.lru_cache(maxsize=256)
 def compiled_kernel(tree, joints, with_external: bool, dtype, mode: str = "fd") -> Kernel:
+    """The :class:`Kernel` of a tree, dtype and mode, made once per process (its builds on first call)."""
     with _lock:
         return Kernel(tree, joints, with_external, dtype, mode)

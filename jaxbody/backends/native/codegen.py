@@ -62,6 +62,7 @@ def residual_count(mode: str) -> int:
 # Two translation units: the per-tree kernel (plain C++, quick to compile) and, once per dtype,
 # the XLA FFI handler (XLA's FFI headers take longer to parse than a small tree takes to
 # optimise). The handler receives the kernel's address as a call attribute.
+#: The declarations both translation units share (``@T@``: the scalar type).
 COMMON_TEMPLATE = _template("common.h")
 _KERNEL = _template("kernel.cc")
 
@@ -88,8 +89,11 @@ _RUN_BLOCK = _template("run_block.cc")
 # the checkpoints, the forward's status, and the cotangents of the final q, v and w; results:
 # the cotangents of the initial q and v.
 _RUN_VJP_BLOCK = _template("run_vjp_block.cc")
+
+#: The XLA FFI handler, one per dtype: a thread pool that runs a program over a batch.
 HANDLER_TEMPLATE = _template("handler.cc")
 
+#: The C++ scalar and XLA FFI data type of each dtype the programs are built for.
 SCALAR_TYPES = {np.dtype(np.float64): ("double", "ffi::F64"), np.dtype(np.float32): ("float", "ffi::F32")}
 
 

@@ -165,6 +165,7 @@ def _reference(model, q, v, force, gravity, external):
 
 
 def state_rows(model, q, v, force, gravity, external):
+    """The forward-dynamics operands ``(q, v, f, p, g, ext)`` of one state as ``(1, n)`` rows."""
     row = lambda x: jnp.reshape(x, (1, -1))  # noqa: E731
     ext = row(external) if external is not None else jnp.zeros((1, 1), q.dtype)
     return (row(q), row(v), row(force), row(parameter_vector(model)), row(gravity), ext)
@@ -172,6 +173,7 @@ def state_rows(model, q, v, force, gravity, external):
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
 def forward_dynamics_call(kernel, model, q, v, force, gravity, external):
+    """One native forward-dynamics call of the compiled ``kernel`` (its JVP rule below)."""
     return kernel.batched(*state_rows(model, q, v, force, gravity, external))[0][0]
 
 

@@ -152,6 +152,7 @@ def with_derivative(value, derivative):
 
 
 def stop_derivative(x):
+    """``x`` with no derivative in the generated derivative programs (constants pass through)."""
     return x.stop() if isinstance(x, Sym) else x
 
 
@@ -191,10 +192,12 @@ def where_negative(c, a, b):
 
 
 def sym_sqrt(x):
+    """``√x`` on a symbol (emitted C++) or a JAX scalar."""
     return x.sqrt() if isinstance(x, Sym) else jnp.sqrt(x)
 
 
 def sym_atan2(y, x):
+    """``atan2(y, x)`` on symbols (emitted C++) or JAX scalars."""
     return y.atan2(x) if isinstance(y, Sym) else jnp.arctan2(y, x)
 
 
