@@ -75,7 +75,7 @@ class Model(eqx.Module):
     keyframe_names: tuple[str, ...] = eqx.field(static=True, default=())
     name: str = eqx.field(static=True, default="model")
     #: Loop closures that make the tree a closed mechanism (from MJCF ``<connect>``). The tree
-    #: dynamics (``forward_dynamics``, :func:`jaxbody.kernels.acceleration`) ignore them; scenes impose them as
+    #: dynamics (``forward_dynamics``, :func:`jaxbody.backends.acceleration`) ignore them; scenes impose them as
     #: Maggi constraints (``jb.scene(model)``, ``jb.simulate(model, ...)``).
     loops: tuple[LoopSpec, ...] = eqx.field(static=True, default=())
 
