@@ -34,7 +34,7 @@ from ._types import Array, Float
 from .joints import HINGE, SLIDE
 from .kinematics import forward_kinematics, qpos_rate
 from .loop_directions import independent_loop_axes, point_gap, point_gap_velocity
-from .maggi import Constraint
+from .maggi.constraint import Constraint
 
 __all__ = [
     "PointOnPlane",
