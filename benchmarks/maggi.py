@@ -98,14 +98,23 @@ def main(argv=None):
         print(record["drift"][-1], flush=True)
     # smooth -> ice -> rough
     slide, skate, roll = dk.sliding_disk(), dk.skating_disk(), dk.rolling_disk()
-    phases = [
-        maggi.Phase(slide, until=lambda t, q, x: slide.base.contact_point(q)[0] - 0.5),
-        maggi.Phase(skate, until=lambda t, q, x: skate.base.contact_point(q)[0] - 1.2),
-        maggi.Phase(roll),
-    ]
-    run = maggi.simulate_phases(phases, jnp.array([0.0, 0.0, 0.3, 1.3, 0.0]), jnp.array([0.0, 0.5, 12.0, 1.0, 0.4]), 3.0,
-                                rtol=1e-10, atol=1e-10)
-    for name, rep in zip(("smooth->ice", "ice->rough"), run.switches):
+    at_switch = []  # (t, q, x-) at each switch, as the phases hand it to the next constraint set
+
+    def record_switch(t, q, x):
+        at_switch.append((t, q, x))
+        return q, x
+
+    phases = jb.Phases(
+        scenes=(jb.scene(slide), jb.scene(skate), jb.scene(roll)),
+        events=(jb.Event(lambda t, q, x: slide.base.contact_point(q)[0] - 0.5),
+                jb.Event(lambda t, q, x: skate.base.contact_point(q)[0] - 1.2)),
+        transitions=(record_switch, record_switch),
+    )
+    jb.simulate(phases, jnp.array([0.0, 0.0, 0.3, 1.3, 0.0]), jnp.array([0.0, 0.5, 12.0, 1.0, 0.4]), 3.0,
+                rtol=1e-10, atol=1e-10)
+    reports = [maggi.switch_constraints(new.repartition(q_sw, x_sw, t_sw), t_sw, q_sw, x_sw)
+               for (t_sw, q_sw, x_sw), new in zip(at_switch, (skate, roll))]
+    for name, rep in zip(("smooth->ice", "ice->rough"), reports):
         record["switches"].append(dict(
             switch=name, t=float(rep.t), energy_before=float(rep.energy_before), energy_lost=float(rep.energy_lost),
             relative=float(rep.energy_lost / rep.energy_before), impulse=[float(v) for v in rep.impulse],

@@ -30,8 +30,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .maggi import Constraint
 from ._types import Array, Float
+from .joints import HINGE, SLIDE
+from .kinematics import forward_kinematics, qpos_rate
+from .loop_directions import independent_loop_axes, point_gap, point_gap_velocity
+from .maggi.constraint import Constraint
 
 __all__ = [
     "PointOnPlane",
@@ -102,8 +105,6 @@ def body_point(model, q, body: int, point) -> Float[Array, " 3"]:
     """World position of a point fixed in ``body`` (``-1``: the world, point as given)."""
     if body < 0:
         return jnp.asarray(point, q.dtype)
-    from .kinematics import forward_kinematics
-
     kin = forward_kinematics(model, q)
     return kin.body_position[body] + kin.body_rotation[body] @ point
 
@@ -112,39 +113,11 @@ def body_point_velocity(model, q, v, body: int, point) -> Float[Array, " 3"]:
     """World velocity of a point fixed in ``body`` (``d/dt`` of :func:`body_point` along ``q̇ = qpos_rate(q, v)``)."""
     if body < 0:
         return jnp.zeros((3,), jnp.asarray(v).dtype)
-    from .kinematics import qpos_rate
-
     return jax.jvp(lambda qq: body_point(model, qq, body, point), (q,), (qpos_rate(model, q, v),))[1]
-
-
-def _point_gap(model, q, body_a: int, point_a, body_b: int, point_b) -> Float[Array, " 3"]:
-    """``p_a(q) − p_b(q)`` of two body points (``-1``: the world), the frames computed once."""
-    if body_a < 0 and body_b < 0:
-        return jnp.asarray(point_a, q.dtype) - jnp.asarray(point_b, q.dtype)
-    from .kinematics import forward_kinematics
-
-    kin = forward_kinematics(model, q)
-
-    def at(body, point):
-        if body < 0:
-            return jnp.asarray(point, q.dtype)
-        return kin.body_position[body] + kin.body_rotation[body] @ point
-
-    return at(body_a, point_a) - at(body_b, point_b)
-
-
-def _point_gap_velocity(model, q, v, body_a: int, point_a, body_b: int, point_b) -> Float[Array, " 3"]:
-    """``d/dt`` of :func:`_point_gap` along ``q̇ = qpos_rate(q, v)``."""
-    from .kinematics import qpos_rate
-
-    gap = lambda qq: _point_gap(model, qq, body_a, point_a, body_b, point_b)  # noqa: E731
-    return jax.jvp(gap, (q,), (qpos_rate(model, q, v),))[1]
 
 
 def body_angular_velocity(model, q, v, body: int) -> Float[Array, " 3"]:
     """World angular velocity of ``body`` (from ``Ṙ Rᵀ``)."""
-    from .kinematics import forward_kinematics, qpos_rate
-
     rot = lambda qq: forward_kinematics(model, qq).body_rotation[body]
     R, Rd = jax.jvp(rot, (q,), (qpos_rate(model, q, v),))
     return _angular_velocity(R, Rd)
@@ -263,17 +236,15 @@ class LoopClosure(Constraint):
     # both points from one evaluation of the frames: a solve differentiates these several
     # times, and each evaluation is a copy of forward kinematics in the compiled program
     def position(self, base, t, q):
-        return self.axes @ _point_gap(_model(base), q, self.body_a, self.point_a, self.body_b, self.point_b)
+        return self.axes @ point_gap(_model(base), q, self.body_a, self.point_a, self.body_b, self.point_b)
 
     def velocity(self, base, t, q, x):
-        return self.axes @ _point_gap_velocity(_model(base), q, x, self.body_a, self.point_a, self.body_b, self.point_b)
+        return self.axes @ point_gap_velocity(_model(base), q, x, self.body_a, self.point_a, self.body_b, self.point_b)
 
 
 def _body_frame_rate(model, q, v, body: int):
     """``(R, x, Ṙ, ẋ)``: rotation and origin of ``body`` and their rates along
     ``q̇ = qpos_rate(q, v)``, from one (differentiated) evaluation of the frames."""
-    from .kinematics import forward_kinematics, qpos_rate
-
     def frame(qq):
         kin = forward_kinematics(model, qq)
         return kin.body_rotation[body], kin.body_position[body]
@@ -296,8 +267,6 @@ def _unit_or_zero(u):
 def _wheel_contact(model, q, body, centre, axis, radius, normal):
     """Contact point of a wheel (disk of ``radius`` about ``centre`` with symmetry ``axis``,
     body frame) with a plane of normal ``normal``: the lowest point of the rim."""
-    from .kinematics import forward_kinematics
-
     kin = forward_kinematics(model, q)
     return _wheel_contact_in(kin.body_rotation[body], kin.body_position[body], centre, axis, radius, normal)
 
@@ -331,8 +300,6 @@ class PlaneContact(_OneRow):
         return (self.normal @ d - self.height)[None]
 
     def velocity(self, base, t, q, x):
-        from .kinematics import qpos_rate
-
         m = _model(base)
         return jax.jvp(lambda qq: self.position(base, t, qq), (q,), (qpos_rate(m, q, x),))[1]
 
@@ -361,8 +328,6 @@ class RollingContact(Constraint):
         return ("rolling (heading)", "rolling (lateral)")
 
     def tangents(self, model, q):
-        from .kinematics import forward_kinematics
-
         return self._tangents_in(forward_kinematics(model, q).body_rotation[self.body])
 
     def _tangents_in(self, R):
@@ -423,8 +388,6 @@ class PrescribedCoordinate(_OneRow):
     label: str = eqx.field(static=True)
 
     def __init__(self, model, joint, motion, params=None):
-        from .joints import HINGE, SLIDE
-
         j = model.joint_index(joint) if isinstance(joint, str) else int(joint)
         if model.joints.type[j] not in (HINGE, SLIDE):
             raise ValueError(f"PrescribedCoordinate: joint {model.joint_names[j]!r} is not a hinge or slide")
@@ -459,46 +422,12 @@ def loop_closures(model, *, axes="auto") -> tuple[LoopClosure, ...]:
     out = []
     for spec in model.loops:
         if isinstance(axes, str) and axes == "auto":
-            ax = spec.axes if spec.axes is not None else _independent_loop_axes(model, spec)
+            ax = spec.axes if spec.axes is not None else independent_loop_axes(model, spec)
         else:
             ax = axes
         out.append(LoopClosure(model, spec.body_a, spec.point_a, spec.body_b, spec.point_b, axes=ax,
                                label=spec.label))
     return tuple(out)
-
-
-def _independent_loop_axes(model, spec, n_random: int = 4, rtol: float = 1e-9):
-    """World directions a loop constrains (see :func:`loop_closures`)."""
-    from .identify import random_states
-
-    if isinstance(model.body_pos, jax.core.Tracer):
-        raise ValueError(
-            f"loop {spec.label!r}: its constrained directions are found from a concrete model; give them "
-            "(LoopSpec.axes, or loop_closures(model, axes=...)) when the model's parameters are traced"
-        )
-    dtype = model.body_pos.dtype
-    qs = [jnp.asarray(model.qpos0)]
-    if n_random:
-        qs += list(jnp.asarray(random_states(model, n_random, seed=0)[0], dtype))
-
-    def jac(q):
-        def rate(x):
-            return _point_gap_velocity(model, q, x, spec.body_a, jnp.asarray(spec.point_a, dtype),
-                                       spec.body_b, jnp.asarray(spec.point_b, dtype))
-
-        return jax.jacfwd(rate)(jnp.zeros(model.nv, dtype))
-
-    J = np.concatenate([np.asarray(jax.jit(jac)(q), np.float64) for q in qs], axis=1)  # (3, K·nv)
-    U, S, _ = np.linalg.svd(J)
-    keep = S > rtol * max(float(S[0]), np.finfo(np.float64).tiny)
-    if not np.any(keep):
-        raise ValueError(f"loop {spec.label!r}: its two points move together at every sampled configuration; "
-                         "it constrains nothing")
-    # world axes when they span those directions (a loop in the x-z plane keeps x and z), so the
-    # reactions are world force components; otherwise the singular vectors
-    basis = U[:, keep]
-    inside = [i for i in range(3) if np.linalg.norm(basis[i]) > 1.0 - 1e-9]
-    return np.eye(3)[inside] if len(inside) == basis.shape[1] else basis.T
 
 
 def connect_constraints(mj_model, model, *, axes=None, active_only: bool = True) -> tuple[LoopClosure, ...]:
@@ -524,13 +453,15 @@ def connect_constraints(mj_model, model, *, axes=None, active_only: bool = True)
     Returns:
         A tuple of :class:`LoopClosure`, in MuJoCo's order.
     """
-    import mujoco
+    import mujoco  # optional dependency, needed only to read MJCF
 
-    from .io.mujoco import _compile, connect_loops
+    # io sits above constraints (it turns files into models); this MJCF reader is the one
+    # constraint builder that needs it, and io does not import constraints, so no cycle forms
+    from .io.mujoco import compile_source, connect_loops
 
     m = mj_model
     if not isinstance(m, mujoco.MjModel):
-        m = _compile(m, "connect_constraints", "MJCF")
+        m = compile_source(m, "connect_constraints", "MJCF")
     return tuple(
         LoopClosure(model, s.body_a, s.point_a, s.body_b, s.point_b, axes=axes, label=s.label)
         for s in connect_loops(m, active_only=active_only)

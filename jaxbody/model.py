@@ -23,7 +23,6 @@ wraps a model into a scene itself).
 """
 
 from collections.abc import Sequence
-from typing import NamedTuple
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -31,25 +30,11 @@ import numpy as np
 
 from ._types import Array, Float, ScalarLike, VectorLike
 from .joints import FREE, HINGE, JOINT_KIND_NAMES, JOINT_KINDS, SLIDE, JointLayout, JointSpec
+from .loops import LoopSpec
 from .tree import BodyTree
 from .validation import validate_parameters
 
 __all__ = ["LoopSpec", "Model", "ModelBuilder", "validate_parameters"]
-
-
-class LoopSpec(NamedTuple):
-    """A loop closure a model carries (MJCF ``<equality><connect>``): the point ``point_a`` of
-    body ``body_a`` stays on the point ``point_b`` of body ``body_b`` (body frames; ``-1`` is
-    the world), along the world directions ``axes`` (``None``: found when a scene is built,
-    :func:`jaxbody.constraints.loop_closures`). Static and hashable; :func:`jaxbody.scene`
-    turns each into a :class:`jaxbody.constraints.LoopClosure`."""
-
-    label: str
-    body_a: int
-    point_a: tuple[float, float, float]
-    body_b: int
-    point_b: tuple[float, float, float]
-    axes: tuple[tuple[float, float, float], ...] | None = None
 
 
 class Model(eqx.Module):

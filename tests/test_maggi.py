@@ -126,45 +126,60 @@ def test_switch_projection_energy_and_impulse(to):
         np.testing.assert_allclose(back.energy_lost, 0.0, atol=1e-13)
 
 
-def smooth_ice_rough_phases(x_ice=0.5, x_rough=1.2):
+def smooth_ice_rough_phases(x_ice=0.5, x_rough=1.2, transitions=()):
+    """Sliding until the contact point reaches the ice at ``x_ice``, skating until the rough
+    ground at ``x_rough``, then rolling: the phases ``jb.simulate`` runs."""
     slide, skate, roll = regimes()
-    return [
-        maggi.Phase(slide, until=lambda t, q, x: slide.base.contact_point(q)[0] - x_ice),
-        maggi.Phase(skate, until=lambda t, q, x: skate.base.contact_point(q)[0] - x_rough),
-        maggi.Phase(roll),
-    ]
+    return jb.Phases(
+        scenes=(jb.scene(slide), jb.scene(skate), jb.scene(roll)),
+        events=(jb.Event(lambda t, q, x: slide.base.contact_point(q)[0] - x_ice),
+                jb.Event(lambda t, q, x: skate.base.contact_point(q)[0] - x_rough)),
+        transitions=transitions,
+    )
 
 
 @pytest.mark.slow  # about 45 s; the Maggi switching tests cover the default job
 def test_smooth_ice_rough_run():
-    phases = smooth_ice_rough_phases()
+    slide, skate, roll = regimes()
+    at_switch = []  # (t, q, x⁻) at each switch, as the phases hand it to the next constraint set
+
+    def record(t, q, x):
+        at_switch.append((t, q, x))
+        return q, x
+
+    phases = smooth_ice_rough_phases(transitions=(record, record))
     q0 = jnp.array([0.0, 0.0, 0.3, 1.3, 0.0])
     x0 = jnp.array([0.0, 0.5, 12.0, 1.0, 0.4])  # slides forward with lateral slip
-    run = maggi.simulate_phases(phases, q0, x0, 3.0, n_save=61, rtol=1e-10, atol=1e-10)
-    assert len(run.switches) == 2
-    t_ice, t_rough = (float(t) for t in run.switch_times)
+    run = jb.simulate(phases, q0, x0, 3.0, n_save=61, rtol=1e-10, atol=1e-10)
+    assert np.asarray(run.stats["switch_occurred"]).tolist() == [True, True] and len(at_switch) == 2
+    t_ice, t_rough = (float(t) for t in run.stats["switch_time"])
     assert 0 < t_ice < t_rough < 3.0
-    base = phases[0].system.base
+    base = slide.base
     # the switches happen where the contact point enters the regions
-    for t_sw, edge in ((t_ice, 0.5), (t_rough, 1.2)):
-        i = int(np.flatnonzero(np.isclose(np.asarray(run.t), t_sw))[0])
-        np.testing.assert_allclose(base.contact_point(run.q[i])[0], edge, atol=1e-8)
-    for rep in run.switches:
-        assert float(rep.energy_lost) > 0.0
-        i = int(np.flatnonzero(np.isclose(np.asarray(run.t), float(rep.t)))[0])
-        dx = rep.x_before - rep.x_after
-        D = phases[0].system.kinetic_metric(0.0, run.q[i], rep.x_before)
-        np.testing.assert_allclose(rep.energy_lost, 0.5 * dx @ D @ dx, rtol=1e-12)
+    for (t_sw, q_sw, _), t_reported, edge in zip(at_switch, (t_ice, t_rough), (0.5, 1.2)):
+        assert float(t_sw) == t_reported
+        np.testing.assert_allclose(base.contact_point(q_sw)[0], edge, atol=1e-8)
+    lost = np.asarray(run.stats["switch_energy_lost"])
+    for (t_sw, q_sw, x_before), new, lost_k in zip(at_switch, (skate, roll), lost):
+        assert float(lost_k) > 0.0
+        # x⁺: the impulsive projection onto the new constraints at the switch state
+        x_after = maggi.switch_constraints(new.repartition(q_sw, x_before, t_sw), t_sw, q_sw, x_before).x_after
+        dx = x_before - x_after
+        D = slide.kinetic_metric(0.0, q_sw, x_before)
+        np.testing.assert_allclose(lost_k, 0.5 * dx @ D @ dx, rtol=1e-12)
     # energy is conserved within each phase and drops by the reported amount at switches
     E = np.asarray(run.energy)
-    ph = np.asarray(run.phase)
+    ph = np.asarray(run.stats["phase"])
     for k in range(3):
         Ek = E[ph == k]
         np.testing.assert_allclose(Ek, Ek[0], rtol=1e-8)
-    np.testing.assert_allclose(E[ph == 0][-1] - E[ph == 1][0], run.switches[0].energy_lost, rtol=1e-8)
-    np.testing.assert_allclose(E[ph == 1][-1] - E[ph == 2][0], run.switches[1].energy_lost, rtol=1e-8)
+    np.testing.assert_allclose(E[ph == 0][-1] - E[ph == 1][0], lost[0], rtol=1e-8)
+    np.testing.assert_allclose(E[ph == 1][-1] - E[ph == 2][0], lost[1], rtol=1e-8)
+    np.testing.assert_allclose(-np.asarray(run.stats["switch_energy_jump"]), lost, rtol=1e-8)
+    for k, (t_sw, q_sw, x_before) in enumerate(at_switch):  # E just before each switch
+        np.testing.assert_allclose(E[ph == k], float(regimes()[k].total_energy(q_sw, x_before)), rtol=1e-8)
     # constraints of each phase hold along it
-    for k, sys in enumerate(p.system for p in phases):
+    for k, sys in enumerate((slide, skate, roll)):
         m = ph == k
         vel = jax.vmap(sys.constraint_residual)(run.t[m], run.q[m], run.v[m])
         assert float(jnp.max(jnp.abs(vel), initial=0.0)) < 1e-8
@@ -175,11 +190,12 @@ def test_time_triggered_switch():
     slide, _, roll = regimes()
     q0 = jnp.array([0.0, 0.0, 0.3, 1.3, 0.0])
     x0 = jnp.array([0.0, 0.5, 4.0, 1.0, 0.4])
-    run = maggi.simulate_phases([maggi.Phase(slide, until=0.4), maggi.Phase(roll)], q0, x0, 1.0, n_save=11)
-    np.testing.assert_allclose(run.switch_times, [0.4])
-    assert float(run.switches[0].energy_lost) > 0
+    at_04 = jb.Phases(scenes=(jb.scene(slide), jb.scene(roll)), events=(jb.Event(lambda t, q, x: t - 0.4),))
+    run = jb.simulate(at_04, q0, x0, 1.0, n_save=11, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(run.stats["switch_time"], [0.4])
+    assert float(run.stats["switch_energy_lost"][0]) > 0
     with pytest.raises(ValueError, match="initial velocities violate the constraints"):
-        maggi.simulate_phases([maggi.Phase(roll)], q0, x0, 1.0)
+        jb.simulate(jb.Phases(scenes=(jb.scene(roll),), events=()), q0, x0, 1.0, rtol=1e-9, atol=1e-9)
 
 
 def test_bad_epsilon_is_rejected_at_build_time():
@@ -198,7 +214,7 @@ def test_bad_epsilon_is_rejected_at_build_time():
 from test_constrained_simulation import PointMass as _Particle  # noqa: E402  (one particle model for both files)
 
 
-def test_simulate_phases_reports_the_initial_velocity_correction():
+def test_phases_report_the_initial_velocity_correction():
     """project_initial=True: the projected start is the kinetic-metric closest admissible
     velocity, and the correction is returned (not thrown away)."""
     L = 1.3
@@ -206,14 +222,19 @@ def test_simulate_phases_reports_the_initial_velocity_correction():
                                    position=lambda b, t, q: ((q @ q - L**2) / (2 * L))[None])
     q0 = jnp.array([L * np.sin(0.3), -L * np.cos(0.3)])
     pend = maggi.constrain(_Particle(jnp.asarray(0.7)), [rod], q_ref=q0)
+    one = jb.Phases(scenes=(jb.scene(pend),), events=())
+    tol = dict(rtol=1e-9, atol=1e-9)
     bad = jnp.array([1.0, 2.0])  # has a radial component
     with pytest.raises(ValueError, match=r"initial velocities violate the constraints \['rod\[0\]'\]"):
-        maggi.simulate_phases([maggi.Phase(pend)], q0, bad, 0.1, n_save=3)
-    run = maggi.simulate_phases([maggi.Phase(pend)], q0, bad, 0.1, n_save=3, project_initial=True)
+        jb.simulate(one, q0, bad, 0.1, n_save=3, **tol)
+    run = jb.simulate(one, q0, bad, 0.1, n_save=3, project_initial=True, **tol)
+    correction = run.stats["v0_correction"]
     # the radial part removed: the tangential velocity kept (equal masses: Euclidean projection)
     radial = q0 / L
-    np.testing.assert_allclose(run.v0_correction, -(bad @ radial) * radial, rtol=1e-12, atol=1e-14)
-    np.testing.assert_allclose(run.v[0], bad + run.v0_correction, rtol=1e-12)
+    np.testing.assert_allclose(correction, -(bad @ radial) * radial, rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(run.v[0], bad + correction, rtol=1e-12)
     np.testing.assert_allclose(pend.constraint_residual(0.0, q0, run.v[0]), 0.0, atol=1e-12)
-    ok = maggi.simulate_phases([maggi.Phase(pend)], q0, run.v[0], 0.1, n_save=3)
-    np.testing.assert_array_equal(ok.v0_correction, 0.0)
+    # admissible velocities pass untouched (and are not corrected when projection is asked for)
+    jb.simulate(one, q0, run.v[0], 0.1, n_save=3, **tol)
+    ok = jb.simulate(one, q0, run.v[0], 0.1, n_save=3, project_initial=True, **tol)
+    np.testing.assert_array_equal(ok.stats["v0_correction"], 0.0)

@@ -4,8 +4,8 @@
   energy change at each switch: the balance ``E − E0 − Σ work`` closes across the whole run, the
   energy an impulsive constraint takes equals ``½ΔvᵀMΔv`` computed here with numpy from the mass
   matrix and the constraint Jacobian, and a phase with an added spring jumps by ``½k q²``;
-* reactions and residuals are joined across phases (padded with NaN to the largest row count) and
-  the smooth → ice → rough disk run equals ``jaxbody.maggi.simulate_phases`` (slow);
+* reactions and residuals are joined across phases (padded with NaN to the largest row count); in
+  the smooth → ice → rough disk run they equal each phase's Maggi reactions at the saved states (slow);
 * ``jb.simulate`` checks ``v0`` against a scene's constraints (or projects it on request), eagerly
   and under ``jit``;
 * a failed solve under ``jit`` names the time reached and the state there (max steps, NaN blow-up).
@@ -313,8 +313,11 @@ def test_phased_solution_round_trips_through_a_file(tmp_path):
     np.testing.assert_array_equal(back.stats["switch_energy_jump"], sol.stats["switch_energy_jump"])
 
 
-@pytest.mark.slow  # ~90 s: two runs, each compiling the disk's autodiff bracket for three regimes
-def test_disk_smooth_ice_rough_equals_maggi_simulate_phases():
+@pytest.mark.slow  # ~45 s: compiles the disk's autodiff bracket for three regimes
+def test_disk_smooth_ice_rough_run():
+    """The smooth → ice → rough disk run joined into one Solution: grid saves with their phase,
+    reactions equal Λ = Kᵀ𝓔 of each phase's system at the saved states (padded with NaN),
+    switch energies, constraints held."""
     from jaxbody.examples import disk as dk
 
     slide, skate, roll = dk.sliding_disk(), dk.skating_disk(), dk.rolling_disk()
@@ -323,33 +326,29 @@ def test_disk_smooth_ice_rough_equals_maggi_simulate_phases():
     q0 = jnp.array([0.0, 0.0, 0.3, 1.3, 0.0])
     x0 = jnp.array([0.0, 0.5, 12.0, 1.0, 0.4])
     n = 61
-    ref = maggi.simulate_phases([maggi.Phase(slide, until=to_ice), maggi.Phase(skate, until=to_rough), maggi.Phase(roll)],
-                                q0, x0, 3.0, n_save=n, **TOL)
     ph = jb.Phases(scenes=(jb.scene(slide), jb.scene(skate), jb.scene(roll)), events=(jb.Event(to_ice), jb.Event(to_rough)))
     sol = jb.simulate(ph, q0, x0, 3.0, n_save=n, **TOL)
-    # maggi saves the grid points of each phase plus every phase's start and end: take the grid
-    rt = np.asarray(ref.t)
-    rows = np.array([np.flatnonzero(np.isclose(rt, g, rtol=0, atol=1e-13))[-1] for g in np.linspace(0.0, 3.0, n)])
-    np.testing.assert_allclose(sol.q, np.asarray(ref.q)[rows], rtol=1e-10, atol=1e-10)
-    np.testing.assert_allclose(sol.v, np.asarray(ref.v)[rows], rtol=1e-10, atol=1e-10)
-    np.testing.assert_allclose(sol.energy, np.asarray(ref.energy)[rows], rtol=1e-10)
-    np.testing.assert_array_equal(np.asarray(sol.stats["phase"]), np.asarray(ref.phase)[rows])
+    np.testing.assert_allclose(sol.t, np.linspace(0.0, 3.0, n), rtol=0, atol=1e-13)
+    t_sw = np.asarray(sol.stats["switch_time"])
+    assert np.asarray(sol.stats["switch_occurred"]).tolist() == [True, True] and 0 < t_sw[0] < t_sw[1] < 3.0
+    phase = np.asarray(sol.stats["phase"])
+    np.testing.assert_array_equal(phase, np.searchsorted(t_sw, np.asarray(sol.t), side="left"))
     # reactions: 0, 1 and 2 rows; padded with NaN to 2 columns
-    lam_ref = np.full((len(rt), 2), np.nan)
-    for k, lam in enumerate(ref.reactions):
-        lam_ref[np.flatnonzero(np.asarray(ref.phase) == k), : lam.shape[1]] = np.asarray(lam)
-    lam_ref = lam_ref[rows]
+    lam_ref = np.full((n, 2), np.nan)
+    for k, system in enumerate((slide, skate, roll)):
+        rows = np.flatnonzero(phase == k)
+        if system.n_constraint:
+            lam = maggi.reactions(system, sol.t[rows], sol.q[rows], sol.v[rows])
+            lam_ref[rows, : lam.shape[1]] = np.asarray(lam)
     np.testing.assert_array_equal(np.isnan(np.asarray(sol.reactions)), np.isnan(lam_ref))
-    # jb reports the reactions of its (Baumgarte-stabilised) vector field, maggi the plain
-    # ones: they differ by the stabilisation terms, ω times residuals of ~1e-11
+    # jb reports the reactions of its (Baumgarte-stabilised) vector field, maggi.reactions the
+    # plain ones: they differ by the stabilisation terms, ω times residuals of ~1e-11
     scale = np.nanmax(np.abs(lam_ref))
     np.testing.assert_allclose(np.asarray(sol.reactions), lam_ref, rtol=0, atol=1e-10 * scale)
     assert dict(sol.layout)["phase_constraint_names"] == (slide.constraint_names, skate.constraint_names, roll.constraint_names)
-    # switches: times, energy lost by the projection, and the jump of E it causes
-    np.testing.assert_allclose(sol.stats["switch_time"], ref.switch_times, rtol=0, atol=1e-12)
-    lost = np.array([float(r.energy_lost) for r in ref.switches])
+    # switches: energy lost by the projection, and the jump of E it causes
+    lost = np.asarray(sol.stats["switch_energy_lost"])
     assert np.all(lost > 0)
-    np.testing.assert_allclose(sol.stats["switch_energy_lost"], lost, rtol=1e-10)
     np.testing.assert_allclose(sol.stats["switch_energy_jump"], -lost, rtol=1e-9)
     assert float(sol.energy_drift) < 1e-8
     vel = np.asarray(sol.constraint_drift["velocity"])

@@ -44,7 +44,9 @@ import numpy as np
 
 from ..joints import HINGE, JOINT_KIND_NAMES, SLIDE, JointLayout
 from .._util import quat_to_matrix
-from ..model import LoopSpec, Model, validate_parameters
+from ..loop_directions import independent_loop_axes
+from ..loops import LoopSpec
+from ..model import Model, validate_parameters
 from ..tree import BodyTree
 
 __all__ = ["from_mjcf", "from_urdf", "from_mujoco", "unsupported_features"]
@@ -112,7 +114,7 @@ def from_mjcf(source, *, strict: bool = False, dtype=None) -> Model:
     Warns:
         UserWarning: one warning listing every feature jaxbody ignores (``strict=False``).
     """
-    return _from_mujoco(_compile(source, "from_mjcf", "MJCF"), strict, dtype, "from_mjcf")
+    return _from_mujoco(compile_source(source, "from_mjcf", "MJCF"), strict, dtype, "from_mjcf")
 
 
 def from_urdf(source, *, strict: bool = False, dtype=None) -> Model:
@@ -124,7 +126,7 @@ def from_urdf(source, *, strict: bool = False, dtype=None) -> Model:
     jaxbody reports as not modelled). Arguments, returns, raises and warnings as in
     :func:`from_mjcf`.
     """
-    return _from_mujoco(_compile(source, "from_urdf", "URDF"), strict, dtype, "from_urdf")
+    return _from_mujoco(compile_source(source, "from_urdf", "URDF"), strict, dtype, "from_urdf")
 
 
 def from_mujoco(mj_model, *, strict: bool = False, dtype=None) -> Model:
@@ -248,10 +250,8 @@ def _from_mujoco(mj_model, strict: bool, dtype, _caller: str) -> Model:
         raise ValueError(f"{where}: {e}") from None
     loops = connect_loops(m)
     if loops:  # the directions each loop constrains, found once here from the concrete model
-        from ..constraints import _independent_loop_axes
-
         try:
-            loops = tuple(s._replace(axes=tuple(map(tuple, _independent_loop_axes(model, s).tolist()))) for s in loops)
+            loops = tuple(s._replace(axes=tuple(map(tuple, independent_loop_axes(model, s).tolist()))) for s in loops)
         except ValueError as e:
             raise ValueError(f"{where}: {e}") from None
         model = Model(**{f.name: getattr(model, f.name) for f in dataclasses.fields(model) if f.name != "loops"},
@@ -275,7 +275,7 @@ def _from_mujoco(mj_model, strict: bool, dtype, _caller: str) -> Model:
 
 def connect_loops(m, active_only: bool = True) -> tuple[LoopSpec, ...]:
     """The ``<equality><connect>`` constraints of a compiled ``mujoco.MjModel`` as loop
-    closures (:class:`jaxbody.model.LoopSpec`, in MuJoCo's order, named after them).
+    closures (:class:`jaxbody.loops.LoopSpec`, in MuJoCo's order, named after them).
 
     MuJoCo's connect keeps an anchor point of ``body1`` on a point of ``body2``; its compiled
     ``eq_data`` holds the anchor in both body frames (site-based connects: the sites'
@@ -487,7 +487,20 @@ def _check_dtype(dtype, caller):
     return want
 
 
-def _compile(source, caller, fmt):
+def compile_source(source, caller, fmt):
+    """Compile ``source`` (a file path or an XML string starting with ``<``) with MuJoCo.
+
+    ``caller`` (the public function's name) and ``fmt`` (``"MJCF"``, ``"URDF"``) name the
+    request in messages.
+
+    Returns:
+        The compiled ``mujoco.MjModel``.
+
+    Raises:
+        FileNotFoundError: ``source`` is a path that does not exist.
+        TypeError: ``source`` is neither a path nor a string.
+        ValueError: MuJoCo's compiler rejects it (the message names the element).
+    """
     mujoco = _mujoco()
     if isinstance(source, str) and source.lstrip().startswith("<"):
         label = f"{fmt} string"

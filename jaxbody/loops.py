@@ -1,0 +1,27 @@
+"""Loop closures a model carries: :class:`LoopSpec`.
+
+A spec is plain static data (bodies, body-frame points, constrained world directions), so it
+sits below the model, which holds a tuple of them (``Model.loops``). The directions a loop
+constrains are found from the model's kinematics by
+:func:`jaxbody.loop_directions.independent_loop_axes`; the constraints built from the specs are
+:class:`jaxbody.constraints.LoopClosure` (:func:`jaxbody.constraints.loop_closures`).
+"""
+
+from typing import NamedTuple
+
+__all__ = ["LoopSpec"]
+
+
+class LoopSpec(NamedTuple):
+    """A loop closure a model carries (MJCF ``<equality><connect>``): the point ``point_a`` of
+    body ``body_a`` stays on the point ``point_b`` of body ``body_b`` (body frames; ``-1`` is
+    the world), along the world directions ``axes`` (``None``: found when a scene is built,
+    :func:`jaxbody.constraints.loop_closures`). Static and hashable; :func:`jaxbody.scene`
+    turns each into a :class:`jaxbody.constraints.LoopClosure`."""
+
+    label: str
+    body_a: int
+    point_a: tuple[float, float, float]
+    body_b: int
+    point_b: tuple[float, float, float]
+    axes: tuple[tuple[float, float, float], ...] | None = None

@@ -1,0 +1,217 @@
+"""Constrained systems built and checked, and states put on their constraint manifold.
+
+:func:`constrain` adds constraints to a base system (checked at a reference state by
+:func:`check_constraints`, which names redundant or inconsistent rows); :func:`initial_state`
+checks or projects an initial state; :func:`project_velocities` (kinetic metric) and
+:func:`project_positions` (Newton, minimum-norm steps) put a state back on the manifold.
+"""
+
+from collections.abc import Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from .. import linalg
+from .._types import ArrayLike
+from ..model import Model
+from .constrained import ConstrainedSystem
+from .constraint import Constraint
+from .systems import SINGULAR_PIVOT, ModelBase
+
+__all__ = ["check_constraints", "constrain", "project_velocities", "project_positions", "initial_state"]
+
+
+def check_constraints(system: ConstrainedSystem, q, x=None, t=0.0, *, rtol: float = 1e-9) -> None:
+    """Build-time check at a reference state: raise ``ValueError`` naming redundant or
+    inconsistent constraint rows (rows of ``G`` that depend on earlier rows; inconsistent
+    when the affine part of a dependent linear row contradicts the earlier ones)."""
+    s, n = system.n_constraint, system.nv
+    if s == 0:
+        return
+    if s > n:
+        raise ValueError(f"{s} constraints on {n} quasi-velocities: at least {s - n} are redundant")
+    x = jnp.zeros((n,), jnp.asarray(q).dtype) if x is None else jnp.asarray(x)
+    G = np.asarray(system.constraint_jacobian(t, q, x), dtype=np.float64)
+    # affine part at x = 0 for linear constraints: f* = G x + c
+    c = np.asarray(system.constraint_residual(t, q, x), dtype=np.float64) - G @ np.asarray(x)
+    names = system.constraint_names
+    scale = max(np.abs(G).max(), 1e-300)
+    kept: list[int] = []
+    for i in range(s):
+        trial = G[kept + [i]]
+        sv = np.linalg.svd(trial, compute_uv=False)
+        if sv[-1] <= rtol * scale * max(1.0, np.sqrt(n)):
+            # row i is a combination of the kept rows: consistent only if c follows the same combination
+            coef, *_ = np.linalg.lstsq(G[kept].T, G[i], rcond=None) if kept else (np.zeros(0),)
+            mismatch = abs(c[i] - (coef @ c[kept] if kept else 0.0))
+            deps = [names[j] for j, a in zip(kept, coef) if abs(a) > 1e-9] if kept else []
+            what = "inconsistent" if mismatch > 1e-9 * max(1.0, np.abs(c).max()) else "redundant"
+            raise ValueError(
+                f"constraints are {what}: row {names[i]!r} depends on "
+                f"{deps if deps else 'nothing (it is zero)'} at the reference state; remove it "
+                f"(or choose fewer components)"
+            )
+        kept.append(i)
+
+
+def constrain(
+    base,
+    constraints: Sequence = (),
+    *,
+    q_ref: ArrayLike,
+    x_ref: ArrayLike | None = None,
+    t_ref: float = 0.0,
+    epsilon: Callable | None = None,
+    baumgarte: float = 10.0,
+    repartition: bool = True,
+    partition_tolerance: float = 0.1,
+) -> ConstrainedSystem:
+    """Add constraints to a base system (docs/maggi.md §3–4).
+
+    Args:
+        base: base system (a :class:`QuasiVelocitySystem`, :class:`ModelBase`, or a
+            :class:`ConstrainedSystem`, whose constraints are kept and extended).
+        constraints: constraints to add.
+        q_ref, x_ref, t_ref: reference state for the build-time checks and the automatic
+            partition (``x_ref`` defaults to zero).
+        epsilon: user characteristics ``ε(base, t, q, x)`` returning ``n − s`` values, such
+            that ``(ε, f*)`` is solvable for ``x``; ``None``: coordinate partitioning.
+        baumgarte: stabilisation rate ``ω`` (1/s) of the constraint residuals.
+        repartition: with coordinate partitioning, re-choose the partition during a solve
+            when it degrades (``False``: stop the solve with ``partition_degraded`` instead).
+        partition_tolerance: in ``(0, 1)``; the partition degrades when its quality falls
+            below this fraction of the quality of the best (pivoted-QR) partition at the
+            current state (docs/maggi.md §4).
+
+    Raises:
+        ValueError: redundant or inconsistent constraints at the reference state, an
+            ``epsilon`` of the wrong size / not completing ``f*`` to an invertible set, or a
+            ``partition_tolerance`` outside ``(0, 1)``.
+    """
+    if isinstance(base, Model):
+        base = ModelBase(base)
+    if isinstance(base, ConstrainedSystem):
+        constraints = tuple(base.constraints) + tuple(constraints)
+        base = base.base
+    constraints = tuple(constraints)
+    for c in constraints:
+        if not isinstance(c, Constraint):
+            raise ValueError(f"constraints must be jaxbody.maggi.Constraint instances, got {type(c).__name__}")
+    q_ref = jnp.asarray(q_ref)
+    dtype = q_ref.dtype if jnp.issubdtype(q_ref.dtype, jnp.inexact) else jnp.result_type(float)
+    q_ref = q_ref.astype(dtype)
+    x_ref = jnp.zeros((base.nv,), dtype) if x_ref is None else jnp.asarray(x_ref, dtype)
+    tol = float(partition_tolerance)
+    if not 0.0 < tol < 1.0:
+        raise ValueError(f"constrain: partition_tolerance must lie in (0, 1), got {partition_tolerance!r}")
+    system = ConstrainedSystem(
+        base=base, constraints=constraints, epsilon=epsilon, free=tuple(range(base.nv)),
+        baumgarte=jnp.asarray(baumgarte, dtype), repartitioning=bool(repartition), partition_tolerance=tol,
+    )
+    check_constraints(system, q_ref, x_ref, t_ref)
+    if epsilon is None:
+        system = system.repartition(q_ref, x_ref, t_ref)
+    else:
+        n_eps = int(np.prod(jax.eval_shape(lambda: epsilon(base, t_ref, q_ref, x_ref)).shape))
+        if n_eps != base.nv - system.n_constraint:
+            raise ValueError(
+                f"epsilon must give n - s = {base.nv} - {system.n_constraint} = "
+                f"{base.nv - system.n_constraint} characteristics, got {n_eps}"
+            )
+        _, _, ratio = system.parametrisation(t_ref, q_ref, x_ref)
+        if not float(ratio) > SINGULAR_PIVOT:
+            raise ValueError(
+                "epsilon does not complete the constraints to solvable extended characteristics "
+                f"(ε, f*) at the reference state (pivot ratio {float(ratio):.3g})"
+            )
+    return system
+
+
+def project_velocities(system: ConstrainedSystem, q, x, t=0.0, *, iterations: int = 3):
+    """Kinetic-metric projection of ``x`` onto ``f*(t, q, ·) = 0``.
+
+    ``x⁺ = x − D⁻¹Gᵀ(GD⁻¹Gᵀ)⁻¹ f*`` (the closest admissible velocity in kinetic energy;
+    exact in one step for linear constraints, Newton iterations for nonlinear ones).
+
+    Returns:
+        ``x⁺``.
+    """
+    if system.n_constraint == 0:
+        return jnp.asarray(x)
+    D = system.kinetic_metric(t, q, x)
+
+    def step(_, xx):
+        G = system.constraint_jacobian(t, q, xx)
+        f = system.constraint_residual(t, q, xx)
+        DiGt = linalg.solve_spd(D, G.T)
+        lam = linalg.solve_spd(G @ DiGt, f)
+        return xx - DiGt @ lam
+
+    return lax.fori_loop(0, 1 if all(c.linear for c in system.constraints) else iterations, step, jnp.asarray(x))
+
+
+def project_positions(system: ConstrainedSystem, q, t=0.0, *, iterations: int = 8):
+    """Newton's method with minimum-norm steps on the holonomic residuals ``φ(t, q) = 0``
+    (``q ← q − Jᵀ(JJᵀ)⁻¹φ``, ``J = ∂φ/∂q`` over the holonomic rows). Coordinates must be
+    plain (no quaternions). Returns the projected ``q``."""
+    rows = [i for i, ok in enumerate(_holonomic_mask(system)) if ok]
+    q = jnp.asarray(q)
+    if not rows:
+        return q
+    idx = jnp.asarray(rows, dtype=jnp.int32)
+    phi = lambda qq: system.position_residual(t, qq)[idx]
+
+    # Newton iterations with minimum-norm steps (optimistix's Newton needs a square
+    # system; its least-squares solvers call LAPACK, which is unsafe in CPU batches).
+    def step(_, qq):
+        J = jax.jacfwd(phi)(qq)
+        return qq - J.T @ linalg.solve_spd(J @ J.T, phi(qq))
+
+    return lax.fori_loop(0, iterations, step, q)
+
+
+def _holonomic_mask(system: ConstrainedSystem) -> list[bool]:
+    mask = []
+    q = jnp.zeros((system.nq,))
+    for c in system.constraints:
+        try:
+            p = c.position(system.base, 0.0, q)
+        except Exception:  # noqa: BLE001 - a position function may not accept a probe state
+            p = None
+        mask += [p is not None] * c.size
+    return mask
+
+
+def initial_state(system: ConstrainedSystem, q, x, t=0.0, *, project_initial: bool = False, atol: float = 1e-9):
+    """Check (or project) an initial state against the constraints.
+
+    Args:
+        system: constrained system.
+        q, x: initial coordinates and quasi-velocities.
+        project_initial: project ``x`` on the constraint manifold (kinetic metric) instead of
+            raising; the correction is returned.
+        atol: admissible velocity residual ``max |f*|`` (scaled by ``max(1, |x|)``).
+
+    Returns:
+        ``(q, x, correction)`` with ``correction = x_projected − x`` (zeros when not projected).
+
+    Raises:
+        ValueError: the initial quasi-velocities violate the constraints, naming the rows.
+    """
+    q = jnp.asarray(q)
+    x = jnp.asarray(x, q.dtype)
+    f = np.asarray(system.constraint_residual(t, q, x))
+    scale = max(1.0, float(np.max(np.abs(np.asarray(x)))) if x.size else 1.0)
+    bad = [system.constraint_names[i] for i in np.flatnonzero(np.abs(f) > atol * scale)]
+    if not bad:
+        return q, x, jnp.zeros_like(x)
+    if not project_initial:
+        raise ValueError(
+            f"initial velocities violate the constraints {bad} (residuals "
+            f"{[float(v) for v in f[np.abs(f) > atol * scale]]}); give admissible rates or "
+            "pass project_initial=True"
+        )
+    xp = project_velocities(system, q, x, t)
+    return q, xp, xp - x
