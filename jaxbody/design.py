@@ -35,8 +35,6 @@ counterweights folded into the bodies' mass, centre of mass and inertia, so ever
 of jaxbody works on it.
 """
 
-import argparse
-import sys
 import time
 from collections.abc import Sequence
 from typing import Any, NamedTuple
@@ -65,7 +63,7 @@ __all__ = [
     "balance",
     "static_balance",
     "tradeoff_curve",
-    "cli_balance",
+    "resolve_bodies",
 ]
 
 class DecouplingReport(NamedTuple):
@@ -456,7 +454,15 @@ def _body_names(system):
     return system.tree.names
 
 
-def _resolve_bodies(system, bodies, what):
+def resolve_bodies(system, bodies, what):
+    """Bodies given by index or name, ``"all"`` or ``None`` -> sorted body indices.
+
+    ``None``: :func:`required_bodies`; ``"all"``: every body (planar) or every moving body
+    with a joint (models). ``what`` names the argument in the error message.
+
+    Raises:
+        ValueError: an unknown name, an index out of range or another string than ``"all"``.
+    """
     n = system.n_body
     if bodies is None:
         return required_bodies(system)
@@ -753,8 +759,8 @@ def balance(
     """
     _check_system(system)
     start = time.perf_counter()
-    req = _resolve_bodies(system, bodies, "bodies")
-    cw = req if counterweights is None else _resolve_bodies(system, counterweights, "counterweights")
+    req = resolve_bodies(system, bodies, "bodies")
+    cw = req if counterweights is None else resolve_bodies(system, counterweights, "counterweights")
     if not req:
         raise ValueError("balance: no body to decouple (nothing has a carrier); pass bodies='all' to balance statically")
     sub = system.tree.subtree_mask  # [k, i]: i in subsystem k
@@ -951,7 +957,7 @@ def static_balance(system, bodies: Sequence[int | str] | str | None = None, radi
     """
     _check_system(system)
     start = time.perf_counter()
-    req = _resolve_bodies(system, bodies, "bodies")
+    req = resolve_bodies(system, bodies, "bodies")
     L = _scale_length(system)
     if radius is None:
         rad = {k: float(L[k]) for k in req}
@@ -1014,111 +1020,3 @@ def tradeoff_curve(system, coupling_weights: Sequence[float], **kwargs):
         coup.append(rep.residual_coupling)
         res.append(rep.residual_static_moment)
     return w, np.asarray(mass), np.asarray(coup), np.asarray(res)
-
-
-# ------------------------------------------------------------------------- command line
-_EXAMPLES = {
-    "double_pendulum": lambda: _examples().double_pendulum(),
-    "three_link_manipulator": lambda: _examples().three_link_manipulator(),
-    "cart_pendulum": lambda: _examples().cart_pendulum().system,
-}
-
-
-def _examples():
-    from . import examples
-
-    return examples
-
-
-class _UsageError(Exception):
-    pass
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message):
-        raise _UsageError(message)
-
-
-def cli_balance(argv: Sequence[str] | None = None) -> int:
-    """``jaxbody balance MODEL_OR_EXAMPLE``: print the augmented static moments, the bodies
-    the corrected Cor. 8 requires to balance, and a proposed design (closed form and, with
-    ``--optimise``, the optimised one). Bad input: one line on stderr, exit status 2."""
-    parser = _Parser(prog="jaxbody balance", description=cli_balance.__doc__.splitlines()[0])
-    parser.add_argument("target", metavar="MODEL_OR_EXAMPLE",
-                        help=f"an MJCF file, one of {', '.join(sorted(_EXAMPLES))} or a shipped robot "
-                             "model (panda, ur5e, anymal_c)")
-    parser.add_argument("--bodies", default=None, help="comma-separated bodies to decouple, or 'all'")
-    parser.add_argument("--radius", type=float, default=None, help="counterweight distance from the joint")
-    parser.add_argument("--optimise", action="store_true", help="also run the optax synthesis")
-    parser.add_argument("--penalty-mass", type=float, default=1.0)
-    parser.add_argument("--penalty-inertia", type=float, default=1.0)
-    try:
-        args = parser.parse_args(argv)
-        if args.radius is not None and not args.radius > 0:
-            raise _UsageError(f"--radius must be positive, got {args.radius}")
-        import pathlib
-
-        from ._xla import set_default_xla_flags
-
-        set_default_xla_flags()
-        jax.config.update("jax_enable_x64", True)
-        from .cli import MODELS_DIR, ROBOT_MODELS
-
-        path = pathlib.Path(args.target)
-        if args.target in _EXAMPLES and not path.exists():
-            system = _EXAMPLES[args.target]()
-        elif path.is_file() or (args.target in ROBOT_MODELS and not path.exists()):
-            from .io.mujoco import from_mjcf
-
-            if not path.is_file():  # a robot model shipped with jaxbody
-                path = MODELS_DIR / f"{args.target}.xml"
-            try:
-                system = from_mjcf(str(path))
-            except Exception as err:  # the importer's message, on one line
-                raise _UsageError(f"cannot load {args.target}: {str(err).splitlines()[0]}") from None
-        else:
-            raise _UsageError(
-                f"{args.target!r} is neither a file, an example ({', '.join(sorted(_EXAMPLES))}) nor a "
-                f"shipped robot model ({', '.join(ROBOT_MODELS)})"
-            )
-        bodies = None
-        if args.bodies is not None:
-            bodies = "all" if args.bodies == "all" else [
-                int(b) if b.strip().lstrip("-").isdigit() else b.strip() for b in args.bodies.split(",")
-            ]
-        try:
-            req = _resolve_bodies(system, bodies, "bodies")
-        except ValueError as err:
-            raise _UsageError(str(err)) from None
-    except _UsageError as err:
-        print(f"jaxbody balance: error: {err}", file=sys.stderr)
-        return 2
-
-    names = _body_names(system)
-    mbar = np.asarray(static_moments(system), dtype=np.float64)
-    from .dynamics import augmented_bodies
-
-    msub = (np.asarray(_planar.augmented_bodies_in_body_axes(system).subtree_mass) if _is_planar(system)
-            else np.asarray(augmented_bodies(system, system.qpos0).subtree_mass))
-    must = set(required_bodies(system))
-    print(f"augmented static moments of {getattr(system, 'name', type(system).__name__)} "
-          f"(body axes, about each joint)")
-    print(f"{'body':>16} {'m_k':>10} {'|m̄_k|':>10}  m̄_k{'':<24} must vanish")
-    for k, name in enumerate(names):
-        print(f"{name:>16} {msub[k]:10.5g} {np.linalg.norm(mbar[k]):10.5g}  "
-              f"{np.array2string(mbar[k], precision=5, suppress_small=True):<28} {'yes' if k in must else 'no'}")
-    if not req:
-        print("nothing to balance: no body has a moving carrier (use --bodies all for static balance)")
-        return 0
-    try:
-        _, rep = static_balance(system, bodies=req, radius=args.radius)
-    except ValueError as err:
-        print(f"jaxbody balance: error: {err}", file=sys.stderr)
-        return 2
-    print("proposed design (closed form, counterweight opposite each static moment):")
-    print(rep.summary())
-    if args.optimise:
-        _, rep2 = balance(system, bodies=req, penalty={"mass": args.penalty_mass, "inertia": args.penalty_inertia})
-        print("optimised design (optax, penalties on added mass and inertia):")
-        print(rep2.summary())
-    return 0

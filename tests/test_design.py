@@ -8,6 +8,7 @@ from jax.test_util import check_grads
 
 import jaxbody as jb
 from jaxbody import design
+from jaxbody.cli.balance import cli_balance
 
 
 def _arm(gravity=9.81):
@@ -171,15 +172,15 @@ def test_balance_errors():
 
 
 def test_cli_balance(capsys):
-    assert design.cli_balance(["three_link_manipulator"]) == 0
+    assert cli_balance(["three_link_manipulator"]) == 0
     out = capsys.readouterr().out
     assert "augmented static moments" in out and "proposed design" in out and "forearm" in out
-    assert design.cli_balance(["no_such_model"]) == 2
+    assert cli_balance(["no_such_model"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("jaxbody balance: error: 'no_such_model' is neither")
-    assert design.cli_balance(["double_pendulum", "--radius", "-1"]) == 2
+    assert cli_balance(["double_pendulum", "--radius", "-1"]) == 2
     assert capsys.readouterr().err.startswith("jaxbody balance: error: --radius must be positive")
-    assert design.cli_balance([]) == 2
+    assert cli_balance([]) == 2
     assert capsys.readouterr().err.count("\n") == 1
 
 
@@ -195,12 +196,12 @@ def test_closed_form_decouples_panda_and_cli_reads_mjcf(models_dir, capsys):
     jb.validate_parameters(out)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        assert design.cli_balance([str(models_dir / "panda.xml")]) == 0
+        assert cli_balance([str(models_dir / "panda.xml")]) == 0
     text = capsys.readouterr().out
     assert "link4" in text and "proposed design" in text and "nan" not in text
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        assert design.cli_balance(["panda"]) == 0  # the shipped model by name, as `jaxbody simulate panda`
+        assert cli_balance(["panda"]) == 0  # the shipped model by name, as `jaxbody simulate panda`
     assert capsys.readouterr().out == text
 
 
