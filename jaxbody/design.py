@@ -295,7 +295,7 @@ def _fold(system, bodies, mass, position, extra):
     eye = jnp.eye(3, dtype=p.dtype)
     Ip = mu[:, None, None] * (jnp.sum(p * p, axis=-1)[:, None, None] * eye - p[:, :, None] * p[:, None, :]) + extra
     add = jnp.concatenate(
-        [mu[:, None], mu[:, None] * p, jnp.stack([Ip[:, i, j] for i, j in _identify._SYM_IDX], axis=-1)], axis=-1
+        [mu[:, None], mu[:, None] * p, jnp.stack([Ip[:, i, j] for i, j in _identify.SYMMETRIC_INDEX], axis=-1)], axis=-1
     )
     pi = pi.at[idx].add(add)
     return _identify.with_parameters(system, pi.reshape(-1))
