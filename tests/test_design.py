@@ -118,7 +118,7 @@ def test_spatial_ball_tree_block_matrix_becomes_block_diagonal():
     assert design.required_bodies(model) == (1, 2, 3)
     out, rep = design.balance(model, steps=50, outer=10)
     q, _, _ = jb.identify.random_states(model, 16, seed=4)
-    batched = jax.jit(jax.vmap(design._spatial_D, in_axes=(None, 0)))
+    batched = jax.jit(jax.vmap(design.coupling_measure.absolute_mass_matrix, in_axes=(None, 0)))
 
     def worst(m):
         blocks = np.asarray(batched(m, jnp.asarray(q))).reshape(-1, 4, 3, 4, 3).transpose(0, 1, 3, 2, 4)
