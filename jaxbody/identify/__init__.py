@@ -1,8 +1,8 @@
 """Parameter identification: inverse-dynamics regressor, base parameters, least squares,
 trajectory fitting through the integrator.
 
-One module per job: :mod:`~jaxbody.identify.parameters` (the parameter vector),
-:mod:`~jaxbody.identify.regressor`, :mod:`~jaxbody.identify.base` (base parameters),
+One module per job: :mod:`~jaxbody.identify.inertial` (the parameter vector),
+:mod:`~jaxbody.identify.regression` (the regressor), :mod:`~jaxbody.identify.base` (base parameters),
 :mod:`~jaxbody.identify.least_squares`, :mod:`~jaxbody.identify.measurements` (excitation and
 states from measured positions), :mod:`~jaxbody.identify.consistency` (pseudo-inertia,
 log-Cholesky), :mod:`~jaxbody.identify.parameterisation` and
@@ -58,7 +58,7 @@ which is positive definite exactly for physically consistent bodies (positive ma
 satisfying the triangle inequality about the centre of mass).
 """
 
-from .parameters import (
+from .inertial import (
     PARAMETER_NAMES as PARAMETER_NAMES,
     EXTRA_COLUMNS as EXTRA_COLUMNS,
     SYMMETRIC_INDEX as SYMMETRIC_INDEX,
@@ -67,7 +67,7 @@ from .parameters import (
     parameter_names as parameter_names,
     with_parameters as with_parameters,
 )
-from .regressor import (
+from .regression import (
     regressor as regressor,
     random_states as random_states,
 )

@@ -12,8 +12,8 @@ from .._types import ArrayLike
 from ..dynamics import augmented_bodies
 from ..kinematics import forward_kinematics
 from ..model import Model
-from .parameters import check_extra, n_extra, parameter_names, reference_parameters, with_parameters
-from .regressor import random_states, stacked_regressor
+from .inertial import check_extra, n_extra, parameter_names, reference_parameters, with_parameters
+from .regression import random_states, stacked_regressor
 
 __all__ = ["BaseParameters", "base_parameters"]
 

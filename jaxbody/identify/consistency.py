@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._types import Array, ArrayLike, Float
-from .parameters import SYMMETRIC_INDEX, unpack
+from .inertial import SYMMETRIC_INDEX, unpack
 
 __all__ = ["pseudo_inertia", "from_log_cholesky", "log_cholesky"]
 

@@ -7,7 +7,7 @@ import numpy as np
 from .._types import ArrayLike, Float
 from ..model import Model
 from .base import BaseParameters
-from .regressor import stacked_regressor
+from .regression import stacked_regressor
 
 __all__ = ["LeastSquaresFit", "least_squares"]
 

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..model import Model
 from .consistency import from_log_cholesky, log_cholesky
-from .parameters import parameters, with_parameters
+from .inertial import parameters, with_parameters
 
 __all__ = ["Parameterisation", "InertialParameterisation"]
 

@@ -11,7 +11,7 @@ from .._types import Array, ArrayLike, Float
 from ..dynamics import inverse_dynamics
 from ..joints import FREE, HINGE, SLIDE
 from ..model import Model
-from .parameters import check_extra, reference_parameters, with_parameters
+from .inertial import check_extra, reference_parameters, with_parameters
 
 __all__ = ["regressor", "random_states", "stacked_regressor"]
 
