@@ -3,7 +3,7 @@ trajectory fitting through the integrator.
 
 One module per job: :mod:`~jaxbody.identify.inertial` (the parameter vector),
 :mod:`~jaxbody.identify.regression` (the regressor), :mod:`~jaxbody.identify.base` (base parameters),
-:mod:`~jaxbody.identify.least_squares`, :mod:`~jaxbody.identify.measurements` (excitation and
+:mod:`~jaxbody.identify.estimation` (least squares), :mod:`~jaxbody.identify.measurements` (excitation and
 states from measured positions), :mod:`~jaxbody.identify.consistency` (pseudo-inertia,
 log-Cholesky), :mod:`~jaxbody.identify.parameterisation` and
 :mod:`~jaxbody.identify.trajectory` (fitting through the integrator); their public names are
@@ -75,7 +75,7 @@ from .base import (
     BaseParameters as BaseParameters,
     base_parameters as base_parameters,
 )
-from .least_squares import (
+from .estimation import (
     LeastSquaresFit as LeastSquaresFit,
     least_squares as least_squares,
 )
