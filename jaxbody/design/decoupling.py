@@ -7,8 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..augmented import static_moment
-from ..planar import PlanarSystem, mass_matrix
-from ..planar.system import ParamLike
+from ..planar import ParamLike, PlanarSystem, mass_matrix
 
 __all__ = ["DecouplingReport", "decoupling_report"]
 
