@@ -8,8 +8,16 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from .bodies import check_system, dimension, inertia_measure, is_planar, joint_anchors, link_length, \
-    resolve_bodies, static_moments
+from .bodies import (
+    check_system,
+    dimension,
+    inertia_measure,
+    is_planar,
+    joint_anchors,
+    link_length,
+    resolve_bodies,
+    static_moments,
+)
 from .counterweights import fold_counterweights
 from .coupling_measure import coupling
 

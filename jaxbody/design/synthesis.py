@@ -12,8 +12,18 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from .bodies import body_names, check_system, dimension, inertia_measure, is_planar, joint_anchors, link_length, \
-    link_reach, resolve_bodies, static_moments
+from .bodies import (
+    body_names,
+    check_system,
+    dimension,
+    inertia_measure,
+    is_planar,
+    joint_anchors,
+    link_length,
+    link_reach,
+    resolve_bodies,
+    static_moments,
+)
 from .closed_form import BalanceReport, static_balance
 from .counterweights import fold_counterweights, fold_point_masses, fold_with_extensions
 from .coupling_measure import coupling
