@@ -10,9 +10,16 @@ import jax
 from .._xla import set_default_xla_flags
 
 __all__ = [
-    "UsageError", "Parser", "positive", "count", "floats", "nonnegative", "assignment",
+    "SOURCE_HELP", "UsageError", "Parser", "positive", "count", "floats", "nonnegative", "assignment",
     "add_scene_options", "one_line", "error_line", "setup_jax",
 ]
+
+
+#: Help of the SOURCE argument of ``simulate`` and ``info``.
+SOURCE_HELP = (
+    "an MJCF (.xml) or URDF (.urdf) file, or a built-in example "
+    "(`jaxbody examples` lists them)"
+)
 
 
 class UsageError(Exception):

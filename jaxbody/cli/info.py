@@ -7,9 +7,8 @@ from ..dynamics import augmented_bodies
 from ..effects import Actuation, BodyLoads, Gravity, JointDampers, JointSprings
 from ..joints import BALL, FREE, HINGE, SLIDE
 from ..planar import augmented_bodies as planar_augmented_bodies
-from .arguments import add_scene_options, setup_jax
+from .arguments import SOURCE_HELP, add_scene_options, setup_jax
 from .scene_options import scene_from_options
-from .simulate import SOURCE_HELP
 from .sources import load
 
 __all__ = ["add_parser", "run", "print_tree"]

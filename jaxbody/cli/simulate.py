@@ -14,18 +14,22 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..simulation import RESULTS, simulate
-from .arguments import UsageError, add_scene_options, count, error_line, floats, one_line, positive, setup_jax
+from .arguments import (
+    SOURCE_HELP,
+    UsageError,
+    add_scene_options,
+    count,
+    error_line,
+    floats,
+    one_line,
+    positive,
+    setup_jax,
+)
 from .plots import animate, plot_trajectory
 from .scene_options import scene_from_options
 from .sources import Source, initial_state, load
 
 __all__ = ["add_parser", "run", "chunk_times", "TrajectoryFiles"]
-
-SOURCE_HELP = (
-    "an MJCF (.xml) or URDF (.urdf) file, or a built-in example "
-    "(`jaxbody examples` lists them)"
-)
-
 
 def add_parser(sub):
     """The ``simulate`` sub-command and its options."""
