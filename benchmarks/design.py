@@ -67,7 +67,7 @@ def main(argv=None):
             _, rep = design.balance(system, penalty=pen)
             entries.append((f"optax AL + L-BFGS, penalty {pen}", rep))
         if name.startswith("3-link arm"):  # link extensions as design variables
-            ext = {"length": (0.0, 2.0 * design._scale_length(system)[list(design.required_bodies(system))])}
+            ext = {"length": (0.0, 2.0 * design.bodies.link_length(system)[list(design.required_bodies(system))])}
             pen = {"mass": 1.0, "inertia": 0.0}
             design.balance(system, penalty=pen, extensions=ext)
             _, rep = design.balance(system, penalty=pen, extensions=ext)

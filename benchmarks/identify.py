@@ -59,7 +59,7 @@ def main(argv=None):
     t = np.linspace(0.0, 10.0, n)
     q, v, a = idf.excitation_trajectory(panda, t, seed=1)
     t0 = time.perf_counter()
-    Y = idf._stack(panda, q, v, a, ())
+    Y = idf.regression.stacked_regressor(panda, q, v, a, ())
     t_reg = time.perf_counter() - t0
     tau0 = Y @ pi
     denom = np.maximum(np.abs(true), 1e-3 * np.abs(true).max())

@@ -257,9 +257,9 @@ def test_info_reflects_scene_options(tmp_path, capsys):
 
 @pytest.mark.parametrize("n_save, n_chunks", [(201, 10), (6, 3), (31, 7), (3, 10), (2, 1)])
 def test_chunks_share_end_points_and_one_length(n_save, n_chunks):
-    from jaxbody.cli import _chunk_times
+    from jaxbody.cli.simulate import chunk_times
 
-    chunks = _chunk_times(2.0, n_save, n_chunks)
+    chunks = chunk_times(2.0, n_save, n_chunks)
     assert len(chunks) <= n_chunks
     assert len({len(ts) for ts, _ in chunks}) == 1  # one compiled solve
     real = [ts[:n] for ts, n in chunks]
@@ -329,13 +329,14 @@ def test_interrupted_run_keeps_what_it_finished(tmp_path):
 
 
 def test_skeleton_points_match_mujoco_and_planar_geometry(tmp_path):
-    from jaxbody import cli
+    from jaxbody.cli.plots import skeleton
+    from jaxbody.cli.sources import load
 
     xml = tmp_path / "pendulum.xml"
     xml.write_text(PENDULUM_XML)
-    src = cli._load(str(xml), "swing")
+    src = load(str(xml), "swing")
     q = np.array([[0.7, -0.4], [-1.2, 2.0]])
-    lines, dim = cli._skeleton(src, np.zeros(2), q)
+    lines, dim = skeleton(src, np.zeros(2), q)
     assert dim == 3 and lines.shape == (2, 2, 3, 3)
     m = mujoco.MjModel.from_xml_string(PENDULUM_XML)
     d = mujoco.MjData(m)
@@ -347,9 +348,9 @@ def test_skeleton_points_match_mujoco_and_planar_geometry(tmp_path):
         np.testing.assert_allclose(lines[f, 1, 0], d.xpos[1], atol=1e-12)  # parent's origin
         np.testing.assert_allclose(lines[f, 0, 0], 0.0, atol=0)  # root hangs from the world
 
-    src = cli._load("double_pendulum")
+    src = load("double_pendulum")
     alpha = np.array([[0.3, -1.1]])
-    lines, dim = cli._skeleton(src, np.zeros(1), alpha)
+    lines, dim = skeleton(src, np.zeros(1), alpha)
     a1, a2 = alpha[0]
     down = lambda a: np.array([np.sin(a), -np.cos(a)])  # angles from the downward vertical
     assert dim == 2
@@ -448,12 +449,10 @@ def test_version(capsys):
 
 
 def test_balance_dispatches_to_design(monkeypatch):
-    import types
+    import jaxbody.cli.balance
 
     seen = []
-    fake = types.ModuleType("jaxbody.design")
-    fake.cli_balance = lambda argv: seen.append(argv) or 7
-    monkeypatch.setitem(sys.modules, "jaxbody.design", fake)
+    monkeypatch.setattr(jaxbody.cli.balance, "cli_balance", lambda argv: seen.append(argv) or 7)
     assert main(["balance", "panda", "--steps", "3"]) == 7
     assert seen == [["panda", "--steps", "3"]]
 

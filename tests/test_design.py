@@ -8,6 +8,7 @@ from jax.test_util import check_grads
 
 import jaxbody as jb
 from jaxbody import design
+from jaxbody.cli.balance import cli_balance
 
 
 def _arm(gravity=9.81):
@@ -117,7 +118,7 @@ def test_spatial_ball_tree_block_matrix_becomes_block_diagonal():
     assert design.required_bodies(model) == (1, 2, 3)
     out, rep = design.balance(model, steps=50, outer=10)
     q, _, _ = jb.identify.random_states(model, 16, seed=4)
-    batched = jax.jit(jax.vmap(design._spatial_D, in_axes=(None, 0)))
+    batched = jax.jit(jax.vmap(design.coupling_measure.absolute_mass_matrix, in_axes=(None, 0)))
 
     def worst(m):
         blocks = np.asarray(batched(m, jnp.asarray(q))).reshape(-1, 4, 3, 4, 3).transpose(0, 1, 3, 2, 4)
@@ -171,15 +172,15 @@ def test_balance_errors():
 
 
 def test_cli_balance(capsys):
-    assert design.cli_balance(["three_link_manipulator"]) == 0
+    assert cli_balance(["three_link_manipulator"]) == 0
     out = capsys.readouterr().out
     assert "augmented static moments" in out and "proposed design" in out and "forearm" in out
-    assert design.cli_balance(["no_such_model"]) == 2
+    assert cli_balance(["no_such_model"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("jaxbody balance: error: 'no_such_model' is neither")
-    assert design.cli_balance(["double_pendulum", "--radius", "-1"]) == 2
+    assert cli_balance(["double_pendulum", "--radius", "-1"]) == 2
     assert capsys.readouterr().err.startswith("jaxbody balance: error: --radius must be positive")
-    assert design.cli_balance([]) == 2
+    assert cli_balance([]) == 2
     assert capsys.readouterr().err.count("\n") == 1
 
 
@@ -195,12 +196,12 @@ def test_closed_form_decouples_panda_and_cli_reads_mjcf(models_dir, capsys):
     jb.validate_parameters(out)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        assert design.cli_balance([str(models_dir / "panda.xml")]) == 0
+        assert cli_balance([str(models_dir / "panda.xml")]) == 0
     text = capsys.readouterr().out
     assert "link4" in text and "proposed design" in text and "nan" not in text
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        assert design.cli_balance(["panda"]) == 0  # the shipped model by name, as `jaxbody simulate panda`
+        assert cli_balance(["panda"]) == 0  # the shipped model by name, as `jaxbody simulate panda`
     assert capsys.readouterr().out == text
 
 

@@ -131,7 +131,7 @@ def test_weighted_least_squares_standard_errors_are_calibrated(panda, panda_base
     pi = np.asarray(idf.parameters(panda))
     n = 120
     q, v, a = idf.random_states(panda, n, seed=11)
-    Y1 = base.reduce(idf._stack(panda, q, v, a, ()))
+    Y1 = base.reduce(idf.regression.stacked_regressor(panda, q, v, a, ()))
     tau0 = np.asarray(Y1 @ base.base(pi))
     sigma = np.linspace(0.05, 0.4, panda.nv)
     rng = np.random.default_rng(5)
@@ -158,7 +158,7 @@ def test_least_squares_from_noisy_joint_positions_within_standard_errors(panda, 
     q, v, a = idf.excitation_trajectory(panda, t, base_frequency=0.2, seed=3)
     rng = np.random.default_rng(0)
     probe = idf.states_from_positions(t, q, window=0.101)
-    Y1 = base.reduce(idf._stack(panda, q[probe.index], v[probe.index], a[probe.index], ()))
+    Y1 = base.reduce(idf.regression.stacked_regressor(panda, q[probe.index], v[probe.index], a[probe.index], ()))
     tau = Y1 @ beta  # the true joint forces at the kept samples
     z = []
     for _ in range(8):

@@ -6,6 +6,7 @@ The spatial model works in joint (relative) angles, so the planar results are ma
 α = T q (spec §9.4): joint-space mass matrix Tᵀℳ T, bias Tᵀh, torques in the same layout.
 """
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -166,3 +167,25 @@ def test_from_model_rejects_what_is_not_planar():
     b.add_body("a", mass=1.0, inertia=(0.1, 0.1, 0.1), com=(0.1, 0, 0), joints=[jb.Hinge(axis=(0, 0, 1))])
     with pytest.raises(ValueError, match=r"gravity \[0.0, 0.0, -9.81\] is not in the plane of motion"):
         jb.planar.from_model(b.build())
+
+
+def test_aligned_system_is_from_model_with_hinges_turned_and_no_passive_effects():
+    """The scene's planar conversion (jb.planar.aligned_system): the planarity test of from_model,
+    either sense of the hinges, springs, dampers and gravity left to the scene."""
+    model = _tilted_model([-1, 0, 1], seed=4, damping=0.5)
+    system, plane, signs = jb.planar.aligned_system(model, model.gravity)
+    assert signs == (1.0, 1.0, 1.0) and plane.shape == (2, 3)
+    undamped = jb.planar.from_model(_tilted_model([-1, 0, 1], seed=4))
+    np.testing.assert_array_equal(system.body_mass, undamped.body_mass)
+    np.testing.assert_allclose(system.body_com, undamped.body_com, rtol=1e-14, atol=1e-15)
+    np.testing.assert_allclose(system.hinge_pos, undamped.hinge_pos, rtol=1e-14, atol=1e-15)
+    np.testing.assert_array_equal(system.gravity, np.zeros(2))
+    # a hinge turned the other way is recorded in its sense; from_model rejects it
+    flipped = eqx.tree_at(lambda m: m.joint_axis, model, model.joint_axis.at[1].multiply(-1.0))
+    assert jb.planar.aligned_system(flipped, model.gravity)[2] == (1.0, -1.0, 1.0)
+    with pytest.raises(ValueError, match=r"the axis of joint 1 .* all hinges must be parallel and point the same way"):
+        jb.planar.from_model(eqx.tree_at(lambda m: m.dof_damping, flipped, jnp.zeros(3)))
+    # gravity off the plane: not planar
+    assert jb.planar.aligned_system(model, np.asarray(model.gravity) + np.asarray(model.joint_axis[0])) is None
+    with pytest.raises(jb.planar.NotPlanar, match="gravity .* is not in the plane of motion"):
+        jb.planar.planarity(model, np.asarray(model.gravity) + np.asarray(model.joint_axis[0]))

@@ -23,7 +23,8 @@ import jax.numpy as jnp
 
 from .. import planar
 from .._types import Array, ArrayLike, Float
-from ..planar.system import ParamLike, _float_dtype, _xp
+from ..planar import ParamLike
+from ..planar.arrays import array_namespace, float_dtype
 from ._embedded import EmbeddedPlanarSystem
 
 __all__ = [
@@ -43,8 +44,8 @@ __all__ = [
 def _prep(reference, *values):
     """Array module (``np`` for concrete inputs, ``jnp`` when traced) and the float dtype of
     ``reference``; every value converted to that dtype."""
-    xp = _xp(reference, *values)
-    dtype = _float_dtype(reference)
+    xp = array_namespace(reference, *values)
+    dtype = float_dtype(reference)
     return xp, dtype, [xp.asarray(v).astype(dtype) for v in (reference, *values)]
 
 

@@ -1,24 +1,32 @@
 """Planar systems with parallel hinge axes in absolute angles (spec §9–§10; [T] Cor. 5–7).
 
-Three modules, re-exported here: :mod:`~jaxbody.planar.system` (the :class:`PlanarSystem`
-pytree, the builders :func:`from_parents` and :func:`chain`, and :func:`from_model` for a
-spatial model with parallel hinges), :mod:`~jaxbody.planar.dynamics` (mass matrix, bias,
-forward and inverse dynamics, reactions through the same Statement-1 kernel as the spatial
-path, energies) and :mod:`~jaxbody.planar.joint_space` (relative angles). The decoupling
-report of Cor. 8 is :func:`jaxbody.design.decoupling_report`.
+Modules, re-exported here: :mod:`~jaxbody.planar.parameters` (the data of a planar system:
+tree, parameters, frames and angles), :mod:`~jaxbody.planar.system` (the :class:`PlanarSystem`
+users hold and the builders :func:`from_parents` and :func:`chain`),
+:mod:`~jaxbody.planar.convert` (:func:`from_model` for a spatial model with parallel hinges,
+and the one planarity test), :mod:`~jaxbody.planar.dynamics` (mass matrix, bias, forward and
+inverse dynamics, reactions through the same Statement-1 kernel as the spatial path,
+energies) and :mod:`~jaxbody.planar.joint_space` (relative angles);
+:mod:`~jaxbody.planar.arrays` holds the builders' array helpers. The decoupling report of
+Cor. 8 is :func:`jaxbody.design.decoupling_report`.
 """
 
+from .parameters import ParamLike as ParamLike, PlanarParameters as PlanarParameters
 from .system import (
     DOWNWARD_VERTICAL as DOWNWARD_VERTICAL,
-    ParamLike as ParamLike,
     PlanarSystem as PlanarSystem,
     chain as chain,
-    from_model as from_model,
     from_parents as from_parents,
-    plane_basis as plane_basis,
     horizontal_to_vertical as horizontal_to_vertical,
     validate as validate,
     vertical_to_horizontal as vertical_to_horizontal,
+)
+from .convert import (
+    NotPlanar as NotPlanar,
+    aligned_system as aligned_system,
+    from_model as from_model,
+    plane_basis as plane_basis,
+    planarity as planarity,
 )
 from .dynamics import (
     absolute_angles as absolute_angles,

@@ -1,6 +1,6 @@
 """Dynamics of planar systems in absolute angles (spec §9–§10; [T] Cor. 5–7).
 
-Coordinates, drives and loads as in :mod:`jaxbody.planar.system`: ``q = (x, y, q_1..q_n)``
+Coordinates, drives and loads as in :mod:`jaxbody.planar.parameters`: ``q = (x, y, q_1..q_n)``
 or ``(q_1..q_n)``, absolute angles; ``tau`` in the layout of ``v`` (base force, hinge drive
 torques); external loads as ``external_force`` ``(n, 2)`` (world axes) and
 ``external_moment`` ``(n,)`` about each body's hinge (see :func:`point_load`).
@@ -23,9 +23,10 @@ from ..augmented import AugmentedBodies, augmented_moment_of_inertia, static_mom
 from ..kinematics import rigid_body_kinetic_energy
 from ..linalg import solve_spd
 from ..spatial import relative_force_factors
-from .system import ParamLike, PlanarSystem
+from .parameters import ParamLike, PlanarParameters
 
 __all__ = [
+    "split_base",
     "absolute_angles",
     "augmented_bodies",
     "augmented_bodies_in_body_axes",
@@ -54,15 +55,17 @@ def _segsum(x, ids, n):
     return jax.ops.segment_sum(x, jnp.asarray(index(ids)), num_segments=n)
 
 
-def _split(system: PlanarSystem, x):
+def split_base(system: PlanarParameters, x):
+    """``(base part, body part)`` of a vector in the layout of ``q`` or ``v``: the two base
+    coordinates of a translating base (none on the ground), then one entry per body."""
     nb = system.n_base
     return x[:nb], x[nb:]
 
 
-def absolute_angles(system: PlanarSystem, q: Float[Array, " nq"]) -> Float[Array, " n_body"]:
+def absolute_angles(system: PlanarParameters, q: Float[Array, " nq"]) -> Float[Array, " n_body"]:
     """``θ_k = q_k + angle_origin``: absolute angles from ``i`` (spec §9.1)."""
     q = check_shape(q, (system.nq,), "q", "planar system")
-    return _split(system, q)[1] + system.angle_origin
+    return split_base(system, q)[1] + system.angle_origin
 
 
 class _Kin(NamedTuple):
@@ -73,7 +76,7 @@ class _Kin(NamedTuple):
     m_sub: Array  # (n,) subsystem masses
 
 
-def _kin(system: PlanarSystem, q) -> _Kin:
+def _kin(system: PlanarParameters, q) -> _Kin:
     tr = system.tree
     theta = absolute_angles(system, q)
     m_sub = subtree_mass(tr, system.body_mass)
@@ -89,13 +92,13 @@ def _kin(system: PlanarSystem, q) -> _Kin:
     return _Kin(theta, rot2(theta, mbar_body), link, J, m_sub)
 
 
-def _pairs(system: PlanarSystem):
+def _pairs(system: PlanarParameters):
     tr = system.tree
     return tr.carrier_pair_ancestor, tr.carrier_pair_body, tr.carrier_pair_child
 
 
 # ---------------------------------------------------------------------------------- augmented
-def augmented_bodies_in_body_axes(system: PlanarSystem) -> AugmentedBodies:
+def augmented_bodies_in_body_axes(system: PlanarParameters) -> AugmentedBodies:
     """:func:`augmented_bodies` with ``static_moment`` in body-``k`` axes (configuration independent)."""
     tr = system.tree
     return AugmentedBodies(
@@ -107,7 +110,7 @@ def augmented_bodies_in_body_axes(system: PlanarSystem) -> AugmentedBodies:
     )
 
 
-def augmented_bodies(system: PlanarSystem, q: Float[Array, " nq"]) -> AugmentedBodies:
+def augmented_bodies(system: PlanarParameters, q: Float[Array, " nq"]) -> AugmentedBodies:
     """Subsystem masses ``m_k``, static moments ``m̄_k`` (eq. 5) and ``J_k`` (eq. 6, planar) at ``q``.
 
     ``static_moment`` is in world axes (``m̄_k·i``, ``m̄_k·j`` as in table T-7c), as
@@ -122,7 +125,7 @@ def augmented_bodies(system: PlanarSystem, q: Float[Array, " nq"]) -> AugmentedB
 
 
 # ---------------------------------------------------------------------------------- dynamics
-def mass_matrix(system: PlanarSystem, q: Float[Array, " nq"]) -> Float[Array, "nv nv"]:
+def mass_matrix(system: PlanarParameters, q: Float[Array, " nq"]) -> Float[Array, "nv nv"]:
     """Mass matrix in absolute angles (spec §9.3, from eqs 10–13).
 
     ``ℳ_kk = J_k``; ``ℳ_ki = ℳ_ik = R_{c(i,k)}·m̄_k`` for ``i`` a carrier of ``k``; zero when
@@ -153,7 +156,7 @@ def mass_matrix(system: PlanarSystem, q: Float[Array, " nq"]) -> Float[Array, "n
 
 
 def bias_forces(
-    system: PlanarSystem, q: Float[Array, " nq"], v: Float[Array, " nv"]
+    system: PlanarParameters, q: Float[Array, " nq"], v: Float[Array, " nv"]
 ) -> Float[Array, " nv"]:
     """Velocity-product and gravity terms ``h`` with ``ℳ q̈ + h = τ`` (spec §9.3, eqs 10–13).
 
@@ -163,7 +166,7 @@ def bias_forces(
     v = check_shape(v, (system.nv,), "v", "planar system")
     kin = _kin(system, q)
     n = system.n_body
-    _, w = _split(system, v)
+    _, w = split_base(system, v)
     w2 = w * w
     anc, body, child = _pairs(system)
     h = -cross2(kin.mbar, system.gravity)
@@ -189,7 +192,7 @@ def _loads(system, external_force, external_moment, dtype):
 
 
 def generalized_forces(
-    system: PlanarSystem,
+    system: PlanarParameters,
     q: Float[Array, " nq"],
     tau: Float[Array, " _nv"] | None = None,
     *,
@@ -215,7 +218,7 @@ def generalized_forces(
     kin = _kin(system, q)
     tr = system.tree
     tau = jnp.zeros((system.nv,), kin.theta.dtype) if tau is None else tau
-    Fb, Mk = _split(system, tau)
+    Fb, Mk = split_base(system, tau)
     Fsub = tr.subtree_sum(F)
     t_abs = Mk - tr.children_sum(Mk) + Mr + tr.children_sum(cross2(kin.link, Fsub))
     if not system.translating_base:
@@ -224,7 +227,7 @@ def generalized_forces(
 
 
 def forward_dynamics(
-    system: PlanarSystem,
+    system: PlanarParameters,
     q: Float[Array, " nq"],
     v: Float[Array, " nv"],
     tau: Float[Array, " _nv"] | None = None,
@@ -251,8 +254,8 @@ def _force_factors(system, q, v, a, external_force=None, external_moment=None):
     F, Mr = _loads(system, external_force, external_moment, system.body_mass.dtype)
     kin = _kin(system, q)
     n = system.n_body
-    _, w = _split(system, v)
-    ab, e = _split(system, a)
+    _, w = split_base(system, v)
+    ab, e = split_base(system, a)
     W0 = jnp.broadcast_to(plane3(ab), (n, 3)) if system.translating_base else None
     kk = jnp.zeros((3, 3), kin.theta.dtype).at[2, 2].set(1.0)
     return relative_force_factors(
@@ -273,7 +276,7 @@ def _force_factors(system, q, v, a, external_force=None, external_moment=None):
 
 
 def inverse_dynamics(
-    system: PlanarSystem,
+    system: PlanarParameters,
     q: Float[Array, " nq"],
     v: Float[Array, " nv"],
     a: Float[Array, " _nv"],
@@ -300,7 +303,7 @@ def inverse_dynamics(
 
 
 def joint_reactions(
-    system: PlanarSystem,
+    system: PlanarParameters,
     q: Float[Array, " nq"],
     v: Float[Array, " nv"],
     a: Float[Array, " _nv"],
@@ -320,7 +323,7 @@ def joint_reactions(
 
 
 def root_force(
-    system: PlanarSystem,
+    system: PlanarParameters,
     q: Float[Array, " nq"],
     v: Float[Array, " nv"],
     a: Float[Array, " _nv"],
@@ -339,11 +342,11 @@ def root_force(
 
 # ---------------------------------------------------------------------------------- kinematics
 def body_positions(
-    system: PlanarSystem, q: Float[Array, " nq"]
+    system: PlanarParameters, q: Float[Array, " nq"]
 ) -> tuple[Float[Array, "n_body 2"], Float[Array, "n_body 2"]]:
     """World positions of the hinges ``O_k`` and of the centres of mass ``C_k``."""
     kin = _kin(system, q)
-    base, _ = _split(system, jnp.asarray(q))
+    base, _ = split_base(system, jnp.asarray(q))
     hinge = system.tree.path_sum(kin.link)
     if system.translating_base:
         hinge = hinge + base
@@ -352,7 +355,7 @@ def body_positions(
 
 
 def point_position(
-    system: PlanarSystem, q: Float[Array, " nq"], body: int, point: ParamLike
+    system: PlanarParameters, q: Float[Array, " nq"], body: int, point: ParamLike
 ) -> Float[Array, "2"]:
     """World position of a point fixed in ``body`` (given in its axes from its hinge)."""
     hinge, _ = body_positions(system, q)
@@ -361,7 +364,7 @@ def point_position(
 
 
 def point_load(
-    system: PlanarSystem,
+    system: PlanarParameters,
     q: Float[Array, " nq"],
     body: int,
     point: ParamLike,
@@ -382,7 +385,7 @@ def point_load(
 
 
 def kinetic_energy(
-    system: PlanarSystem, q: Float[Array, " nq"], v: Float[Array, " nv"]
+    system: PlanarParameters, q: Float[Array, " nq"], v: Float[Array, " nv"]
 ) -> Float[Array, ""]:
     """``T = Σ_k (½ m_0k |v_Ck|² + ½ I_Ck θ̇_k²) + ½ m_base |v_base|²`` (body by body).
 
@@ -390,7 +393,7 @@ def kinetic_energy(
     """
     v = check_shape(v, (system.nv,), "v", "planar system")
     kin = _kin(system, q)
-    vb, w = _split(system, v)
+    vb, w = split_base(system, v)
     parent = np.asarray(system.tree.parent)
     w_parent = jnp.where(jnp.asarray(parent >= 0), w[index(np.maximum(parent, 0))], 0.0)
     v_hinge = system.tree.path_sum(w_parent[:, None] * perp2(kin.link))
@@ -406,7 +409,7 @@ def kinetic_energy(
     return T
 
 
-def potential_energy(system: PlanarSystem, q: Float[Array, " nq"]) -> Float[Array, ""]:
+def potential_energy(system: PlanarParameters, q: Float[Array, " nq"]) -> Float[Array, ""]:
     """Gravitational potential ``V = −Σ_k m_0k g·C_k − m_base g·(x, y)`` (world origin = 0)."""
     _, com = body_positions(system, q)
     V = -jnp.sum(system.body_mass * _dot2(com, system.gravity))
@@ -416,14 +419,14 @@ def potential_energy(system: PlanarSystem, q: Float[Array, " nq"]) -> Float[Arra
 
 
 def total_energy(
-    system: PlanarSystem, q: Float[Array, " nq"], v: Float[Array, " nv"]
+    system: PlanarParameters, q: Float[Array, " nq"], v: Float[Array, " nv"]
 ) -> Float[Array, ""]:
     """``T + V``."""
     return kinetic_energy(system, q, v) + potential_energy(system, q)
 
 
 def power(
-    system: PlanarSystem,
+    system: PlanarParameters,
     q: Float[Array, " nq"],
     v: Float[Array, " nv"],
     tau: Float[Array, " _nv"] | None = None,

@@ -10,29 +10,29 @@ import numpy as np
 
 from .._types import Array, Float
 from .._util import check_shape, index
-from .dynamics import _split, bias_forces, mass_matrix
-from .system import PlanarSystem
+from .dynamics import bias_forces, mass_matrix, split_base
+from .parameters import PlanarParameters
 
 __all__ = ["absolute_to_relative", "relative_to_absolute", "joint_mass_matrix", "joint_bias_forces"]
 
 
-def absolute_to_relative(system: PlanarSystem, q: Float[Array, " nq"]) -> Float[Array, " nq"]:
+def absolute_to_relative(system: PlanarParameters, q: Float[Array, " nq"]) -> Float[Array, " nq"]:
     """Joint (relative) angles ``q_k = θ_k − θ_{p(k)}`` (spec §9.4, ``α = T q``).
 
     Roots keep their angle (relative to the ground/base, in the system's angle convention); base
     coordinates pass through. Linear, so it converts rates and accelerations alike.
     """
     q = check_shape(q, (system.nq,), "q", "planar system")
-    qb, a = _split(system, q)
+    qb, a = split_base(system, q)
     parent = np.asarray(system.tree.parent)
     ap = jnp.where(jnp.asarray(parent >= 0), a[index(np.maximum(parent, 0))], 0.0)
     return jnp.concatenate([qb, a - ap])
 
 
-def relative_to_absolute(system: PlanarSystem, q_rel: Float[Array, " nq"]) -> Float[Array, " nq"]:
+def relative_to_absolute(system: PlanarParameters, q_rel: Float[Array, " nq"]) -> Float[Array, " nq"]:
     """Absolute angles ``α = T q`` from joint angles: ``α_k = Σ_{i∈C(k)∪{k}} q_i`` (spec §9.4)."""
     q_rel = check_shape(q_rel, (system.nq,), "q_rel", "planar system")
-    qb, r = _split(system, q_rel)
+    qb, r = split_base(system, q_rel)
     return jnp.concatenate([qb, system.tree.path_sum(r)])
 
 
@@ -41,7 +41,7 @@ def _transpose_path(system, x):
     return system.tree.subtree_sum(x)
 
 
-def joint_mass_matrix(system: PlanarSystem, q: Float[Array, " nq"]) -> Float[Array, "nv nv"]:
+def joint_mass_matrix(system: PlanarParameters, q: Float[Array, " nq"]) -> Float[Array, "nv nv"]:
     """Joint-space mass matrix ``Tᵀ ℳ T`` (spec §9.4; identity on the base block)."""
     M = mass_matrix(system, q)
     nb = system.n_base
@@ -54,13 +54,13 @@ def joint_mass_matrix(system: PlanarSystem, q: Float[Array, " nq"]) -> Float[Arr
 
 
 def joint_bias_forces(
-    system: PlanarSystem, q: Float[Array, " nq"], v: Float[Array, " nv"]
+    system: PlanarParameters, q: Float[Array, " nq"], v: Float[Array, " nv"]
 ) -> Float[Array, " nv"]:
     """``Tᵀ h``: velocity and gravity terms of Lagrange's equations in joint angles (spec §9.4).
 
     ``v`` are the absolute rates (convert joint rates with :func:`relative_to_absolute`).
     """
-    hb, ht = _split(system, bias_forces(system, q, v))
+    hb, ht = split_base(system, bias_forces(system, q, v))
     return jnp.concatenate([hb, _transpose_path(system, ht)])
 
 
