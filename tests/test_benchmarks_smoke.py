@@ -120,7 +120,7 @@ def test_throughput_t5_pairs_smoke(tmp_path):
 def test_kernels_benchmark_smoke(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(REPO))
     env.setdefault("XLA_FLAGS", default_xla_flags())
-    cmd = [sys.executable, str(BENCH / "kernels.py"), "--out", str(tmp_path), "--name", "rec",
+    cmd = [sys.executable, str(BENCH / "kernels.py"), "compare", "--out", str(tmp_path), "--name", "rec",
            "--models", "chain2", "--batch", "4", "--steps", "3", "--min-time", "0.01",
            "--simulate-models", "chain2"]
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env, cwd=REPO)
@@ -198,7 +198,7 @@ def test_identify_benchmark_smoke(tmp_path):
 def test_gradient_profile_smoke(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(REPO))
     env.setdefault("XLA_FLAGS", default_xla_flags())
-    cmd = [sys.executable, str(BENCH / "gradient_profile.py"), "--kernels", "vectorised", "--min-time", "0.01", "--no-rollout",
+    cmd = [sys.executable, str(BENCH / "kernels.py"), "gradient", "--kernels", "vectorised", "--min-time", "0.01", "--no-rollout",
            "--out", str(tmp_path), "--name", "rec"]
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env, cwd=REPO)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
@@ -211,7 +211,7 @@ def test_gradient_profile_smoke(tmp_path):
 def test_native_build_smoke(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(REPO))
     env.setdefault("XLA_FLAGS", default_xla_flags())
-    cmd = [sys.executable, str(BENCH / "native_build.py"), "--models", "chain2", "--out", str(tmp_path), "--name", "rec"]
+    cmd = [sys.executable, str(BENCH / "kernels.py"), "build", "--models", "chain2", "--out", str(tmp_path), "--name", "rec"]
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env, cwd=REPO)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
     rec = json.loads((tmp_path / "rec.json").read_text())
@@ -226,7 +226,7 @@ def test_native_build_smoke(tmp_path):
 def test_step_kernel_smoke(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(REPO))
     env.setdefault("XLA_FLAGS", default_xla_flags())
-    cmd = [sys.executable, str(BENCH / "step_kernel.py"), "--models", "panda,double_pendulum", "--batches", "16",
+    cmd = [sys.executable, str(BENCH / "kernels.py"), "step", "--models", "panda,double_pendulum", "--batches", "16",
            "--min-time", "0.01", "--rounds", "2", "--out", str(tmp_path), "--name", "rec"]
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env, cwd=REPO)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
@@ -238,12 +238,12 @@ def test_step_kernel_smoke(tmp_path):
                for r in rec["rows"])
     md = (tmp_path / "rec.md").read_text()
     assert "| panda | 16 | kernel |" in md and "| chain2 | 16 | simulate |" in md
-    # the same loop alone, for a profiler (step_loop.py), on the kernels just built
-    cmd = [sys.executable, str(BENCH / "step_loop.py"), "--dtype", "float32", "--batch", "16", "--seconds", "0.01"]
+    # the same loop alone, for a profiler (kernels.py loop), on the kernels just built
+    cmd = [sys.executable, str(BENCH / "kernels.py"), "loop", "--dtype", "float32", "--batch", "16", "--seconds", "0.01"]
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env, cwd=REPO)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
     assert "panda float32 B=16:" in p.stdout and "ns/state-step" in p.stdout
-    cmd[2:2] = ["--model", "chain2"]  # a generated hinge chain
+    cmd[3:3] = ["--model", "chain2"]  # a generated hinge chain
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env, cwd=REPO)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
     assert "chain2 float32 B=16:" in p.stdout
@@ -253,7 +253,7 @@ def test_step_kernel_smoke(tmp_path):
 def test_single_state_builds_smoke(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(REPO))
     env.setdefault("XLA_FLAGS", default_xla_flags())
-    cmd = [sys.executable, str(BENCH / "single_state_builds.py"), "--models", "chain2", "--pairs", "1", "--min-time", "0.01",
+    cmd = [sys.executable, str(BENCH / "kernels.py"), "single-state", "--models", "chain2", "--pairs", "1", "--min-time", "0.01",
            "--out", str(tmp_path), "--name", "rec"]
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env, cwd=REPO)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
@@ -278,11 +278,11 @@ def test_saving_benchmark_smoke(tmp_path):
     assert "| double_pendulum | n_save=1001 |" in (tmp_path / "rec.md").read_text()
 
 
-def test_throughput_rerender_of_the_gpu_records(tmp_path):
-    # The GPU records were measured on a lent machine; --rerender re-analyses them here. The
-    # GPU targets come out of their numbers, and targets a run did not measure say so.
+def test_throughput_rerender_of_the_gpu_record(tmp_path):
+    # The GPU record was measured on a lent machine; --rerender re-analyses it here. The
+    # GPU targets come out of its numbers, and targets a run did not measure say so.
     env = dict(os.environ, PYTHONPATH=str(REPO), MPLBACKEND="Agg")
-    for name in ("throughput_gpu", "throughput_gpu_vs_mjx", "throughput_gpu_barrier_pair"):
+    for name in ("throughput_gpu",):
         cmd = [sys.executable, str(BENCH / "throughput.py"), "--rerender", str(BENCH / "results" / f"{name}.json"),
                "--out", str(tmp_path), "--name", name]
         p = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env, cwd=REPO)
@@ -301,6 +301,15 @@ def test_throughput_rerender_of_the_gpu_records(tmp_path):
         assert gpu[1]["verdict"] == ("MET" if min(ratios) >= 10 else "NOT MET")
         md = (tmp_path / f"{name}.md").read_text()
         assert "kernel" in md and "Where it ran: jb32 on NVIDIA H200" in md
+
+
+def test_kernels_script_lists_its_subcommands():
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    p = subprocess.run([sys.executable, str(BENCH / "kernels.py"), "--help"], capture_output=True, text=True,
+                       timeout=120, env=env, cwd=REPO)
+    assert p.returncode == 0, p.stderr[-3000:]
+    for sub in ("compare", "build", "step", "loop", "single-state", "gradient", "gpu-profile"):
+        assert f"  {sub} " in p.stdout, sub
 
 
 def test_loop_body_ops_counts_the_top_level_operations_of_each_while_body():
@@ -350,7 +359,7 @@ ENTRY %main (x: f32[4]) -> (s32[], f32[4]) {
 def test_step_profile_smoke(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(REPO))
     env.setdefault("XLA_FLAGS", default_xla_flags())
-    cmd = [sys.executable, str(BENCH / "step_profile.py"), "--cases", "float64:4,float32:4", "--steps", "3",
+    cmd = [sys.executable, str(BENCH / "kernels.py"), "gpu-profile", "--cases", "float64:4,float32:4", "--steps", "3",
            "--kernel", "vectorised", "--repeats", "1", "--out", str(tmp_path), "--name", "rec"]
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env, cwd=REPO)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
