@@ -690,7 +690,7 @@ def _finish_markdown(results, path, L):
         L += ["## float32 against float64 in pairs", "",
               "One process (`jax_enable_x64` on; a float32 model and float32 states for the float32 rollouts) "
               "compiles both rollouts of a batch, then times float64 and float32 one after the other, "
-              f"{results['t5_pairs']} times (`--t5-pairs`): the drift of a virtual machine's speed between "
+              f"{results['t5_pairs']} times (`--float32-pairs`): the drift of a virtual machine's speed between "
               "the separate workers above moves their ratio by more than the float32 target's margin. System-steps/s are "
               "medians over the pairs.", "",
               _common.markdown_table(["model", "batch", "steps", "float64 /s", "float32 /s", "pair ratios f32/f64", "median"],
