@@ -397,3 +397,32 @@ def test_eager_calls_benchmark_smoke(tmp_path):
     assert run["model"] == "chain2" and set(run["times"]) == {"inverse_dynamics", "forward_dynamics", "mass_matrix"}
     assert all(t["first_s"] > 0 and t["later_s"] > 0 for t in run["times"].values())
     assert "| chain2 | `jb.mass_matrix` | this tree |" in md
+
+
+SCRIPTS = sorted(p.name for p in BENCH.glob("*.py") if not p.name.startswith("_"))
+KERNEL_PROBES = ("compare", "build", "step", "loop", "single-state", "gradient", "gpu-profile")
+
+
+@pytest.mark.parametrize("args", [[s] for s in SCRIPTS if s != "kernels.py"] + [["kernels.py", k] for k in KERNEL_PROBES],
+                         ids=lambda a: " ".join(a))
+def test_every_benchmark_answers_help(args):
+    """Every script (and every probe of kernels.py) parses its options; the ones without a run of
+    their own here (dynamics, linalg, maggi) are at least imported and their flags listed."""
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env.setdefault("XLA_FLAGS", default_xla_flags())
+    p = subprocess.run([sys.executable, str(BENCH / args[0]), *args[1:], "--help"], capture_output=True, text=True,
+                       timeout=300, env=env, cwd=REPO)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    assert "usage:" in p.stdout
+
+
+@pytest.mark.slow  # about 2 min on 2 busy cores: the shipped robots and one random tree
+def test_mujoco_agreement_smoke(tmp_path):
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env.setdefault("XLA_FLAGS", default_xla_flags())
+    cmd = [sys.executable, str(BENCH / "mujoco_agreement.py"), "--random", "1", "--states", "1", "--out", str(tmp_path)]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env, cwd=REPO)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    rec = json.loads((tmp_path / "mujoco_agreement.json").read_text())
+    assert rec["stamp"]["commit"] and all(float(x) < 1e-10 for x in rec["worst"].values())
+    assert "| random0 |" in (tmp_path / "mujoco_agreement.md").read_text()
