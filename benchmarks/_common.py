@@ -1,4 +1,4 @@
-"""Shared helpers of the benchmarks: run stamps, timing, isolated workers (STYLE rule 15).
+"""Shared helpers of the benchmarks: run stamps, timing, isolated workers.
 
 Nothing here imports JAX: a benchmark's parent process stays free of XLA so that a worker
 that deadlocks or runs out of memory can be killed without taking the record with it.

@@ -16,7 +16,7 @@ this measures, in isolated worker processes:
   all cores) and one-step ``mujoco.rollout`` (``mj_step``, all cores);
 * Pinocchio ``crba``/``rnea``/``aba`` when ``import pinocchio`` works (optional).
 
-Ratios and the issue's targets are computed from numbers of the same run. Results go to
+Ratios and the targets are computed from numbers of the same run. Results go to
 ``benchmarks/results/dynamics.{md,json,png}`` stamped with commit, machine, versions,
 date and command line. See ``benchmarks/README.md``.
 
@@ -491,7 +491,7 @@ def _jb_status(batch_rec, fn):
 
 
 def compute_targets(results, args):
-    """The issue's targets, each MET / NOT MET / NOT MEASURED with its numbers."""
+    """The targets, each MET / NOT MET / NOT MEASURED with its numbers."""
     single, batch = results["single"], results["batch"]
     targets = []
 
@@ -524,14 +524,14 @@ def compute_targets(results, args):
         return t
 
     targets.append(ratio_target(
-        "T1", "panda", "forward_nthread", 2.0,
+        "panda-vs-mujoco-all-cores", "panda", "forward_nthread", 2.0,
         "panda: batched forward_dynamics (batch >= 1024) >= 2x MuJoCo mj_forward on all cores"))
     targets.append(ratio_target(
-        "T2", "chain20", "forward_1thread", 1.0,
+        "chain20-vs-mujoco-one-thread", "chain20", "forward_1thread", 1.0,
         "chain20: batched forward_dynamics (batch >= 1024) >= MuJoCo mj_forward on one thread"))
 
-    # T3: large batches complete
-    t = {"id": "T3", "target": "forward_dynamics batches of 8192 and 65536 complete"}
+    # large batches complete
+    t = {"id": "large-batches", "target": "forward_dynamics batches of 8192 and 65536 complete"}
     parts, ok, missing = [], True, []
     for b in (8192, HUGE_BATCH):
         cells = [(model, recs[str(b)]) for model, recs in batch.items() if str(b) in recs]
@@ -552,8 +552,8 @@ def compute_targets(results, args):
         t.update(verdict=verdict, detail="; ".join(parts))
     targets.append(t)
 
-    # T4: compile time scaling
-    t = {"id": "T4", "target": "forward_dynamics compile time, chain100 within 2x of chain2"}
+    # compile time scaling
+    t = {"id": "compile-scaling", "target": "forward_dynamics compile time, chain100 within 2x of chain2"}
     c100 = _get(single, "chain100", "jaxbody", "forward_dynamics", "compile_total_s")
     c2 = _get(single, "chain2", "jaxbody", "forward_dynamics", "compile_total_s")
     if c100 is None or c2 is None:

@@ -14,7 +14,7 @@ vertical plane x = 0), a prescribed support motion, body loads, actuation, dampe
 Sets with loads or a constraint run on the spatial path only.
 
 Results go to ``benchmarks/results/effects.{md,json}`` (``--out`` picks another folder) stamped
-with commit, machine, versions, date and command (STYLE rule 15).
+with commit, machine, versions, date and command.
 
 Usage::
 

@@ -18,8 +18,8 @@ checkpointed gradient is compiled a second time for a 16× longer horizon to sho
 memory grows with the number of steps (jaxbody's default adjoint keeps a checkpoint per step
 up to a fixed memory budget, ``jaxbody.simulation.CHECKPOINT_BYTES``, then recomputes). The gradients of the three adjoints are compared with
 each other (a fast wrong gradient shows). Records ``benchmarks/results/<name>.{md,json,png}``
-(default ``gradients``), stamped; verdict for target T3 of issue 7 (gradient ≤ 3× the forward
-rollout, memory bounded). The T3 ratio is the median of ``--pairs`` (default 5) forward and
+(default ``gradients``), stamped; verdict for the gradient target (gradient ≤ 3× the forward
+rollout, memory bounded). The ratio is the median of ``--pairs`` (default 5) forward and
 gradient timings taken one after the other in the checkpoint worker: on a virtual machine the
 speed drifts by 10-20% between separate workers, which moves a ratio of two workers as much.
 
@@ -161,7 +161,7 @@ def _mib(x):
 
 
 def analyse(results):
-    """Ratios to the forward rollout, gradient agreement, T3 verdict."""
+    """Ratios to the forward rollout, gradient agreement, the gradient-cost verdict."""
     import numpy as np
 
     out = {}
@@ -195,13 +195,13 @@ def analyse(results):
         m4 = _get(r, "checkpoint", "longer_horizon", "memory", "temp_size_in_bytes")
         hf = results["horizon_factor"]
         if tr is None:
-            T.append(dict(id="T3", target=f"{model}: gradient (checkpointed) <= 3x forward rollout, memory bounded",
+            T.append(dict(id="gradient-cost", target=f"{model}: gradient (checkpointed) <= 3x forward rollout, memory bounded",
                           verdict="NOT MEASURED", detail="checkpoint or forward case failed"))
             continue
         bounded = m1 is not None and m4 is not None and m4 < hf * m1 * 0.75
         mem_txt = (f"temp memory {_mib(m1)} MiB at {results['steps']} steps, {_mib(m4)} MiB at {hf}x the horizon"
                    if m4 is not None else "longer horizon not measured")
-        T.append(dict(id="T3", target=f"{model}: gradient of a {results['steps']}-step rollout (checkpointed) <= 3x forward, memory bounded",
+        T.append(dict(id="gradient-cost", target=f"{model}: gradient of a {results['steps']}-step rollout (checkpointed) <= 3x forward, memory bounded",
                       verdict="MET" if tr <= 3 and bounded else "NOT MET",
                       detail=f"time {tr:.3g}x forward{pair_txt}; {mem_txt} ({'sub-linear' if bounded else 'not sub-linear'})"))
     return out, T
@@ -241,7 +241,7 @@ def write_markdown(results, path):
     L += ["Agreement of the gradients (max abs difference / max |checkpointed gradient|; backsolve integrates the "
           "adjoint ODE with its own RK4 steps, so it differs at the discretisation-error level):", "",
           _common.markdown_table(["model", "backsolve vs checkpoint", "forward mode vs checkpoint"], agree), "",
-          "## Targets (issue 7)", "",
+          "## Targets", "",
           _common.markdown_table(["id", "target", "verdict", "measured"],
                                  [[t["id"], t["target"], t["verdict"], t["detail"]] for t in results["targets"]]), ""]
     path.write_text("\n".join(L))
@@ -296,7 +296,7 @@ def parse_args(argv=None):
                    help="simulate's step budget: the horizon plus 16 steps, or simulate's default")
     p.add_argument("--pairs", type=int, default=5,
                    help="the checkpoint worker also times the forward rollout and the gradient in this many "
-                        "interleaved pairs; T3 takes the median of their ratios (0: the ratio of the two workers)")
+                        "interleaved pairs; the gradient-cost verdict takes the median of their ratios (0: the ratio of the two workers)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--kernel", choices=("auto", "native", "unrolled", "vectorised"),
                    help="forward-dynamics kernel: jb.simulate(jb.scene(model, kernel=KERNEL), ...); default: the model itself")

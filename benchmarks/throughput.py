@@ -14,11 +14,11 @@ at dt = 1e-3 from random states (rigid-body dynamics only, no actuation/contacts
 * MJX: ``jax.jit(jax.vmap(rollout))`` with ``rollout`` a ``lax.fori_loop`` of
   ``mjx.step`` (RK4 integrator, float32 as MJX runs by default), with its compile time; a
   worker that does not finish within ``--mjx-timeout`` (default 300 s) is recorded as such;
-* single trajectory (T2): per-step time of a jitted, unbatched ``jb.simulate`` of
+* single trajectory: per-step time of a jitted, unbatched ``jb.simulate`` of
   ``--single-steps`` steps against MuJoCo's ``mj_step`` (a C loop: ``rollout`` of one
   trajectory on one thread; and a Python loop of ``mujoco.mj_step``);
-* compile time of ``jb.forward_dynamics`` and of the single-trajectory ``jb.simulate`` (T4);
-* float32 against float64 (T5 and the README's "float32: when it is enough"): the final
+* compile time of ``jb.forward_dynamics`` and of the single-trajectory ``jb.simulate`` (does it stay flat as the tree grows?);
+* float32 against float64 (speed and accuracy, and the README's "float32: when it is enough"): the final
   state after 1 s from a few random states, RK4 at dt = 1e-3 in both precisions, and
   float32 ``tsit5`` at rtol = atol from 1e-4 to 1e-8 against a float64 ``tsit5`` solution
   at 1e-10 (did it succeed, how many steps, what error).
@@ -84,7 +84,7 @@ def _rigid_rk4(path):
 
 
 def worker_mujoco(cfg, rec):
-    """``mujoco.rollout`` of RK4 rollouts: per batch on 1 thread and all cores; T2; accuracy."""
+    """``mujoco.rollout`` of RK4 rollouts: per batch on 1 thread and all cores; one trajectory; accuracy."""
     import mujoco
     import mujoco.rollout
     import numpy as np
@@ -130,7 +130,7 @@ def worker_mujoco(cfg, rec):
             row[key] = t
             rec.save()
 
-    # T2: one trajectory, mj_step in a C loop (rollout, 1 thread) and from Python
+    # one trajectory, mj_step in a C loop (rollout, 1 thread) and from Python
     ns = cfg["single_steps"]
     if not ns:
         return
@@ -200,10 +200,10 @@ def _simulate_rollout(jb, diffrax, cfg):
 
 
 def worker_pairs(cfg, rec):
-    """T5 in pairs: float64 and float32 rollouts of the same batch in one process
+    """float32 against float64 in pairs: float64 and float32 rollouts of the same batch in one process
     (``jax_enable_x64`` on, a float32 model and float32 states for the float32 one), timed
     one after the other ``cfg["pairs"]`` times. A virtual machine's speed drifts between
-    worker processes by more than the margin T5 asks about; a pair shares the drift."""
+    worker processes by more than the margin the float32 target asks about; a pair shares the drift."""
     import warnings
 
     import diffrax
@@ -278,7 +278,7 @@ def worker_jaxbody(cfg, rec):
         q, v, _, _ = _states(m, batch, seed)
         return jnp.asarray(q, dtype), jnp.asarray(v, dtype)
 
-    # T4: compile time of forward_dynamics and of one whole simulate, single state
+    # compile time of forward_dynamics and of one whole simulate, single state
     # (--single-steps 0: neither, e.g. on a GPU, where batches are what is measured)
     ns = cfg["single_steps"]
     if ns:
@@ -506,38 +506,38 @@ def compute_targets(results):
         else:
             verdict = "MET" if all(r >= factor for _, r in ok_rows) else "NOT MET"
             detail = ", ".join(f"B={b}: {r:.3g}x" for b, r in ok_rows)
-        T.append(dict(id="T1", target=f"{model}: jaxbody float64 RK4 rollout >= {factor}x MuJoCo rollout on all cores, B >= 1024",
+        T.append(dict(id="batch-vs-mujoco", target=f"{model}: jaxbody float64 RK4 rollout >= {factor}x MuJoCo rollout on all cores, B >= 1024",
                       verdict=verdict, detail=detail))
     jb = _get(results["runs"], "panda", "jb64", "single", "per_step_s")
     mj = _get(results["runs"], "panda", "mujoco", "single", "rollout_1thread_per_step_s")
     if jb and mj:
-        T.append(dict(id="T2", target="panda single trajectory: jitted jb.simulate RK4 step <= 2x mj_step (RK4)",
+        T.append(dict(id="single-trajectory", target="panda single trajectory: jitted jb.simulate RK4 step <= 2x mj_step (RK4)",
                       verdict="MET" if jb / mj <= 2 else "NOT MET",
                       detail=f"{jb * 1e6:.3g} us vs {mj * 1e6:.3g} us per step: {jb / mj:.3g}x"))
     else:
-        T.append(dict(id="T2", target="panda single trajectory <= 2x mj_step", verdict="NOT MEASURED", detail="panda not in the run or failed"))
+        T.append(dict(id="single-trajectory", target="panda single trajectory <= 2x mj_step", verdict="NOT MEASURED", detail="panda not in the run or failed"))
     for what, keys in (("forward_dynamics", ("compile_forward_dynamics", "compile_total_s")),
                        ("simulate (single trajectory)", ("single", "compile", "compile_total_s"))):
         c100 = _get(results["runs"], "chain100", "jb64", *keys)
         c2 = _get(results["runs"], "chain2", "jb64", *keys)
         if c100 and c2:
-            T.append(dict(id="T4", target=f"compile time of {what}: chain100 within 2x of chain2",
+            T.append(dict(id="compile-scaling", target=f"compile time of {what}: chain100 within 2x of chain2",
                           verdict="MET" if c100 / c2 <= 2 else "NOT MET",
                           detail=f"{c100:.3g} s vs {c2:.3g} s: {c100 / c2:.3g}x"))
         else:
-            T.append(dict(id="T4", target=f"compile time of {what}: chain100 within 2x of chain2",
+            T.append(dict(id="compile-scaling", target=f"compile time of {what}: chain100 within 2x of chain2",
                           verdict="NOT MEASURED", detail="chain2 or chain100 missing"))
     if 65536 in batches:
         bad = [m for m in results["runs"] if cell_status(results, m, 65536, "jb64") != "ok"]
         if "jb64" not in results["impls"]:
-            T.append(dict(id="T4", target="batches of 65536 complete for every model (float64)",
+            T.append(dict(id="batch-65536", target="batches of 65536 complete for every model (float64)",
                           verdict="NOT MEASURED", detail="jb64 not in --impls"))
         else:
-            T.append(dict(id="T4", target="batches of 65536 complete for every model (float64)",
+            T.append(dict(id="batch-65536", target="batches of 65536 complete for every model (float64)",
                           verdict="MET" if not bad else "NOT MET",
                           detail="failed: " + ", ".join(bad) if bad else "all complete"))
     else:
-        T.append(dict(id="T4", target="batches of 65536 complete for every model", verdict="NOT MEASURED",
+        T.append(dict(id="batch-65536", target="batches of 65536 complete for every model", verdict="NOT MEASURED",
                       detail="65536 not in --batches"))
     rows = [(m, b, steps_per_s(results, m, b, "jb32"), steps_per_s(results, m, b, "jb64"))
             for m in results["runs"] for b in big]
@@ -548,18 +548,18 @@ def compute_targets(results):
     if paired:
         ok = [(m, b, r) for m, b, r in paired if r]
         sep = {(m, b): r for m, b, r in ok_rows}
-        T.append(dict(id="T5", target=f"float32 throughput >= 1.8x float64 (B >= 1024; median of {results['t5_pairs']} "
+        T.append(dict(id="float32-speed", target=f"float32 throughput >= 1.8x float64 (B >= 1024; median of {results['t5_pairs']} "
                                       "interleaved pairs in one process)",
                       verdict="MET" if ok and len(ok) == len(paired) and all(r >= 1.8 for *_, r in ok) else "NOT MET",
                       detail="; ".join(f"{m} B={b}: {r:.3g}x" + (f" (separate workers {sep[m, b]:.3g}x)" if (m, b) in sep else "")
                                        for m, b, r in ok) + ("; failed: " + ", ".join(f"{m} B={b}" for m, b, r in paired if not r)
                                                              if len(ok) < len(paired) else "")))
     elif ok_rows:
-        T.append(dict(id="T5", target="float32 throughput >= 1.8x float64 (B >= 1024)",
+        T.append(dict(id="float32-speed", target="float32 throughput >= 1.8x float64 (B >= 1024)",
                       verdict="MET" if all(r >= 1.8 for *_, r in ok_rows) and len(ok_rows) == len(rows) else "NOT MET",
                       detail="; ".join(f"{m} B={b}: {r:.3g}x" for m, b, r in ok_rows)))
     else:
-        T.append(dict(id="T5", target="float32 throughput >= 1.8x float64", verdict="NOT MEASURED", detail="no float32/float64 pair"))
+        T.append(dict(id="float32-speed", target="float32 throughput >= 1.8x float64", verdict="NOT MEASURED", detail="no float32/float64 pair"))
     gpu = [d for d in (_get(results["runs"], "panda", impl, "device_kind") for impl in ("jb32", "jb64"))
            if d and _get(results["runs"], "panda", "jb32", "backend") == "gpu"]
     if gpu:
@@ -577,7 +577,7 @@ def compute_targets(results):
     acc = results.get("accuracy", {})
     errs = {m: a["rk4_f32_vs_rk4_f64"] for m, a in acc.items() if "rk4_f32_vs_rk4_f64" in a}
     if errs:
-        T.append(dict(id="T5", target="float32 within 1e-4 of float64 (final state after 1 s, RK4 dt=1e-3, relative to max |state|)",
+        T.append(dict(id="float32-accuracy", target="float32 within 1e-4 of float64 (final state after 1 s, RK4 dt=1e-3, relative to max |state|)",
                       verdict="MET" if all(e <= 1e-4 for e in errs.values()) else "NOT MET",
                       detail=", ".join(f"{m}: {e:.2g}" for m, e in errs.items())))
     return T
@@ -629,7 +629,7 @@ def write_markdown(results, path):
     if ran_on or mjx_on:
         L += ["Where it ran: " + "; ".join(ran_on + [f"MJX on {d}" for d in mjx_on]) + ".", ""]
     if not results["single_steps"]:
-        L += ["Single trajectory (T2) and compile of one state (T4): not in this run (`--single-steps 0`).", ""]
+        L += ["Single trajectory and compile of one state: not in this run (`--single-steps 0`).", ""]
     else:
         L += _single_section(results)
     return _finish_markdown(results, path, L)
@@ -637,7 +637,7 @@ def write_markdown(results, path):
 
 def _single_section(results):
     L = []
-    L += ["## Single trajectory (T2) and compile times (T4)", "",
+    L += ["## Single trajectory and compile times", "",
           f"Unbatched `jax.jit` of `jb.simulate` over {results['single_steps']} RK4 steps, per step; MuJoCo "
           "`mj_step` (RK4) in a C loop (`rollout`, 1 thread, one trajectory) and from a Python loop.", ""]
     rows = []
@@ -687,15 +687,15 @@ def _finish_markdown(results, path, L):
                                   _si(statistics.median(p["float32"] for p in pairs)),
                                   " ".join(f"{p['ratio']:.2f}" for p in pairs), f"{row['median_ratio']:.3g}"])
     if pair_rows:
-        L += ["## float32 against float64 in pairs (T5)", "",
+        L += ["## float32 against float64 in pairs", "",
               "One process (`jax_enable_x64` on; a float32 model and float32 states for the float32 rollouts) "
               "compiles both rollouts of a batch, then times float64 and float32 one after the other, "
-              f"{results['t5_pairs']} times (`--t5-pairs`): the drift of a virtual machine's speed between "
-              "the separate workers above moves their ratio by more than T5's margin. System-steps/s are "
+              f"{results['t5_pairs']} times (`--float32-pairs`): the drift of a virtual machine's speed between "
+              "the separate workers above moves their ratio by more than the float32 target's margin. System-steps/s are "
               "medians over the pairs.", "",
               _common.markdown_table(["model", "batch", "steps", "float64 /s", "float32 /s", "pair ratios f32/f64", "median"],
                                      pair_rows), ""]
-    L += ["## Targets (issue 7)", "", _common.markdown_table(
+    L += ["## Targets", "", _common.markdown_table(
         ["id", "target", "verdict", "measured"], [[t["id"], t["target"], t["verdict"], t["detail"]] for t in results["targets"]]), ""]
     fails = []
     for model, r in results["runs"].items():
@@ -786,18 +786,18 @@ def parse_args(argv=None):
     p.add_argument("--max-work", type=int, default=200_000,
                    help="cap batch x steps of a timed call: steps = max(min_steps, min(steps, max_work // batch))")
     p.add_argument("--single-steps", type=int, default=1000,
-                   help="steps of the single-trajectory timing (T2); 0 skips it and the T4 compile timings")
+                   help="steps of the single-trajectory timing ; 0 skips it and the compile timings")
     p.add_argument("--kernel", choices=("auto", "native", "unrolled", "vectorised"),
                    help="forward-dynamics kernel of the jaxbody runs: jb.simulate(jb.scene(model, kernel=KERNEL), ...); "
-                        "default: the model itself (jaxbody.kernels.DEFAULT_KERNEL)")
+                        "default: the model itself (jaxbody.backends.DEFAULT_KERNEL)")
     p.add_argument("--chunk", type=int, default=256, help="batches above this run through jb.vmap_chunked(.., CHUNK)")
     p.add_argument("--devices", type=int, default=_common.core_count(),
                    help="CPU devices jb.vmap_chunked splits big batches over (sets "
                         "--xla_force_host_platform_device_count for the jaxbody workers; default: cores)")
     p.add_argument("--threads", type=int, default=_common.core_count(), help="MuJoCo 'all cores' thread count")
-    p.add_argument("--t5-pairs", type=int, default=0,
+    p.add_argument("--float32-pairs", "--t5-pairs", dest="t5_pairs", metavar="N", type=int, default=0,
                    help="also time float64 and float32 one after the other in one process, this many pairs per "
-                        "model and batch >= 1024 (T5 then reads the median pair ratio; default 0: separate workers only)")
+                        "model and batch >= 1024 (the float32 speed target then reads the median pair ratio; default 0: separate workers only)")
     p.add_argument("--no-accuracy", action="store_true", help="skip the float32/float64 accuracy runs")
     p.add_argument("--accuracy-models", default="panda,chain20", help="models of the accuracy runs")
     p.add_argument("--accuracy-states", type=int, default=4)
