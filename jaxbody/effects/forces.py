@@ -40,10 +40,10 @@ class Gravity(Effect):
     conservative: ClassVar[bool] = True
 
     def generalized_force(self, ctx: EffectContext):
-        return ctx.scene._uniform_field_force(ctx, self.vector)
+        return ctx.scene.uniform_field_force(ctx, self.vector)
 
     def potential_energy(self, ctx: EffectContext):
-        return ctx.scene._uniform_field_potential(ctx, self.vector)
+        return ctx.scene.uniform_field_potential(ctx, self.vector)
 
 
 class JointSprings(Effect):
@@ -179,7 +179,7 @@ class BodyLoads(Effect):
 
     def generalized_force(self, ctx: EffectContext):
         w = jnp.asarray(self.wrench(ctx.t, ctx.q, ctx.v), ctx.v.dtype)
-        return ctx.scene._body_wrench_force(ctx, w[:, :3], w[:, 3:])
+        return ctx.scene.body_wrench_force(ctx, w[:, :3], w[:, 3:])
 
     def check(self, scene):
         dt = jnp.result_type(float)
@@ -214,7 +214,7 @@ class SupportMotion(Effect):
 
     def generalized_force(self, ctx: EffectContext):
         acc = jnp.asarray(self.acceleration(ctx.t), ctx.v.dtype)
-        return ctx.scene._uniform_field_force(ctx, -acc)
+        return ctx.scene.uniform_field_force(ctx, -acc)
 
     def check(self, scene):
         out = jax.eval_shape(self.position, jax.ShapeDtypeStruct((), jnp.result_type(float)))
