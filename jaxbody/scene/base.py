@@ -44,6 +44,8 @@ class Scene(eqx.Module):
     """
 
     system: Any
+    # a tuple, not a list: the effects are part of the pytree structure, and equal scenes share
+    # one compilation only if the structure is hashable and ordered
     effects: tuple
     constraints: Any = None
 
@@ -69,8 +71,10 @@ class Scene(eqx.Module):
     @property
     def has_quaternions(self) -> bool:
         """Ball or free joints present (their quaternions are kept on the unit sphere)."""
+        # a protocol system integrates its own coordinates: the scene keeps nothing on a sphere
         if not isinstance(self.system, Model):
             return False
+        # decided from the joint kinds (static), so a hinge-only model traces no projection
         return any(int(k) in (BALL, FREE) for k in self.system.joints.type)
 
     @property
@@ -90,6 +94,7 @@ class Scene(eqx.Module):
     def gravity_vector(self, dtype) -> Float[Array, " 3"] | None:
         """The sum of the declared uniform gravity fields (``None`` without any): the ground's
         acceleration the straight-line kernels take."""
+        # several Gravity effects add up (a field and a tilt correction, say): the kernels take one
         gravity = None
         for e in self.effects:
             if isinstance(e, Gravity):
@@ -154,6 +159,7 @@ class Scene(eqx.Module):
 
     def potential_energy(self, q) -> Float[Array, ""]:
         """Sum of the potentials of the conservative effects."""
+        # potentials depend on q alone: the context is built at rest and t = 0
         ctx = self.context(jnp.zeros((), q.dtype), q, jnp.zeros((self.nv,), q.dtype))
         e = jnp.zeros((), q.dtype)
         for eff in self.effects:
@@ -169,6 +175,7 @@ class Scene(eqx.Module):
         """``(position, velocity)`` residuals of the constraints at ``(t, q, v)`` (``None`` without)."""
         if self.constraints is None:
             return None
+        # the constraints see the same context as the vector field (rheonomic rows need t)
         return self.constraints.drift(self.context(jnp.asarray(t, v.dtype), q, v))
 
     def __repr__(self):
@@ -205,6 +212,8 @@ class ModelScene(Scene):
     def effect_forces(self, ctx: EffectContext, tau) -> tuple[Float[Array, " nv"], list]:
         """``(f, powers)``: the sum ``f`` of every effect's generalized force plus ``tau``, and the
         power of each non-conservative effect (the actuation's includes ``tau·v``)."""
+        # the powers come in the order of work_names, which is how the simulator's work vector
+        # is laid out; an extra tau is booked as actuation work when the scene has actuation
         v = ctx.v
         forces = [e.generalized_force(ctx) for e in self.effects]
         powers = [jnp.dot(f, v) for e, f in zip(self.effects, forces) if not e.conservative]

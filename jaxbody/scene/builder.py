@@ -102,6 +102,8 @@ def scene(
         raise ValueError(f"scene: kernel must be one of {KERNELS}, got {kernel!r}")
     declared: list[Effect] = []
     if not isinstance(system, Model):
+        # a protocol system has its own dynamics: only forces in its own coordinates (actuation)
+        # can be added; springs, loads or constraints would need the model's kinematics
         for name, val in (("springs", springs), ("dampers", dampers), ("loads", loads), ("support", support), ("constraints", constraints)):
             if val is not None and val is not False and not (isinstance(val, str) and val == "model"):
                 raise ValueError(
@@ -110,6 +112,7 @@ def scene(
         if gravity is False or gravity is None:
             if not hasattr(system, "gravity"):
                 raise ValueError(f"scene: gravity cannot be switched off on {type(system).__name__}")
+            # the system's gravity is part of its own dynamics: switching it off edits the system
             system = eqx.tree_at(lambda s: s.gravity, system, jnp.zeros_like(system.gravity))
         elif not (gravity is True or (isinstance(gravity, str) and gravity == "model")):
             raise ValueError("scene: a gravity vector needs a spatial jaxbody.Model; pass True or False")
@@ -117,6 +120,7 @@ def scene(
             declared.append(_actuation(actuation))
         declared.extend(effects)
         out = SystemScene(system=system, effects=tuple(declared), constraints=own_constraints(system))
+        # effects check themselves against the scene they are in (shapes, path), before tracing
         for e in out.effects:
             e.check(out)
         return out
@@ -126,7 +130,8 @@ def scene(
     if isinstance(constraints, str) and constraints == "model":
         constraints = loop_closures(model) if model.loops else None
     constraints = _constraint_slot(model, constraints)
-    # gravity
+    # gravity, springs and dampers from the model are declared only when non-zero, so that a
+    # model without them traces none of their terms; a traced value might be non-zero: declared
     if gravity is True or (isinstance(gravity, str) and gravity == "model"):
         if not is_concrete(model.gravity) or np.any(np.asarray(model.gravity) != 0) or gravity is True:
             declared.append(Gravity(model.gravity))
@@ -135,7 +140,6 @@ def scene(
         if g.shape != (3,):
             raise ValueError(f"scene: gravity must be a bool or a (3,) vector, got shape {g.shape}")
         declared.append(Gravity(g))
-    # springs and dampers
     if isinstance(springs, JointSprings):
         declared.append(springs)
     elif isinstance(springs, str) and springs == "model":
@@ -164,6 +168,7 @@ def scene(
 
     # loads and constraints are spatial: a scene with either keeps the spatial path
     planar_ok = planar is not False and loads is None and constraints is None
+    # the planar path needs gravity in the plane of motion (a field out of it would be lost)
     grav = [e.vector for e in declared if isinstance(e, Gravity)]
     converted = planar_from_model(model, grav[0] if grav else None) if planar_ok else None
     if planar is True and converted is None:
@@ -189,6 +194,7 @@ def _constraint_slot(model: Model, constraints):
     if isinstance(constraints, maggi.Constraint):
         constraints = (constraints,)
     if isinstance(constraints, (tuple, list)):
+        # the partition is a pivoted QR on concrete values: it cannot be chosen inside a trace
         if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(model)):
             raise ValueError(
                 "scene: constraints are checked and their coordinate partition chosen when the scene is "
@@ -203,6 +209,7 @@ def _constraint_slot(model: Model, constraints):
                 f"scene: constraints: {err} (they were checked at model.qpos0; pass "
                 "jaxbody.maggi.constrain(model, [...], q_ref=<an admissible q>) instead)"
             ) from None
+    # any object with the constraint protocol is accepted (jaxbody.effects.Constraint)
     missing = [n for n in ("accelerations", "drift") if not callable(getattr(constraints, n, None))]
     if missing:
         raise ValueError(
@@ -225,6 +232,7 @@ def _constraint_slot(model: Model, constraints):
 
 
 def _actuation(actuation) -> Actuation:
+    """The :class:`~jaxbody.effects.Actuation` of the ``actuation`` argument of :func:`scene`."""
     if isinstance(actuation, Actuation):
         return actuation
     if isinstance(actuation, tuple) and len(actuation) == 2 and callable(actuation[0]):
@@ -232,4 +240,3 @@ def _actuation(actuation) -> Actuation:
     if callable(actuation):
         return Actuation(actuation)
     raise ValueError(f"scene: actuation must be callable, a (callable, params) pair or an Actuation, got {type(actuation).__name__}")
-

@@ -83,4 +83,3 @@ def _planar_conversion(model, gravity, tol):
     system = eqx.tree_at(lambda s: s.gravity, converted, jnp.zeros(2, dtype))
     plane = jnp.asarray(planar.plane_basis(n, g), dtype)
     return system, plane, tuple(float(s) for s in signs)
-

@@ -16,6 +16,7 @@ class Event(eqx.Module):
     """
 
     condition: Callable
+    # static: diffrax builds a different root-finding program for each direction
     direction: bool | None = eqx.field(static=True, default=None)
 
     def __call__(self, t, q, v):
@@ -51,6 +52,7 @@ class Phases(eqx.Module):
     events: tuple
     transitions: tuple = ()
 
+    # checked when built, so a mismatch is reported before any phase is traced
     def __check_init__(self):
         if len(self.scenes) < 1 or len(self.events) != len(self.scenes) - 1:
             raise ValueError(
@@ -58,6 +60,7 @@ class Phases(eqx.Module):
             )
         if self.transitions and len(self.transitions) != len(self.events):
             raise ValueError("phases: give one transition per event (or none)")
+        # one state flows through every phase (the joined solution has one q and one v array)
         shapes = {(s.nq, s.nv) for s in self.scenes}
         if len(shapes) != 1:
             raise ValueError(f"phases: every scene needs the same (nq, nv), got {sorted(shapes)}")

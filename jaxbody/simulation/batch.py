@@ -49,6 +49,7 @@ def simulate_batch(
         :class:`Solution` with a leading batch axis on every array.
     """
     kwargs = dict(kwargs)
+    # one failed member must not stop the others: failures stay per-member result codes
     kwargs["throw"] = False
     q0s = jnp.asarray(q0s)
     v0s = jnp.asarray(v0s)
@@ -59,12 +60,14 @@ def simulate_batch(
     n = q0s.shape[0]
     devices = list(jax.devices() if devices is None else devices)
     n_dev = len(devices)
+    # every chunk has the same shape (the last one padded), so one compiled program serves all
     per_chunk = n_dev * (math.ceil(n / n_dev) if chunk_size is None else int(chunk_size))
     n_chunks = math.ceil(n / per_chunk)
     pad = n_chunks * per_chunk - n
     params, static = eqx.partition(system, eqx.is_array)
 
     def padded(x):
+        # padding repeats the last member (a valid input, unlike zeros for a quaternion)
         return jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]) if pad else x
 
     q0s, v0s = padded(q0s), padded(v0s)
@@ -72,6 +75,7 @@ def simulate_batch(
         params = jax.tree.map(padded, params)
     mesh = Mesh(np.asarray(devices), ("batch",))
     shard = NamedSharding(mesh, PartitionSpec("batch"))
+    # a shared system is replicated on every device; a batched one is split like the states
     replicated = NamedSharding(mesh, PartitionSpec())
     run = _batch_runner(static, batched_system, t1, tuple(sorted(kwargs.items(), key=lambda kv: kv[0])))
     outs = []
@@ -85,7 +89,11 @@ def simulate_batch(
 
 
 class _Kw:
-    """Hashable wrapper of keyword arguments (arrays compared by identity)."""
+    """Hashable wrapper of keyword arguments (arrays compared by identity).
+
+    Arrays (``saveat`` times, a ``tau``) are not hashable by value; by identity, a caller that
+    passes the same objects again reuses the compiled runner, and a new array compiles anew
+    instead of silently reusing another array's values."""
 
     def __init__(self, items):
         self.items = items
@@ -112,6 +120,7 @@ def _batch_runner(static, batched_system, t1, kw_items):
         return hit[0]
     kwargs = dict(kw_items)
 
+    # t1 is an argument, not a constant of the trace: batches over other horizons reuse the program
     @eqx.filter_jit
     def run(params, q0s, v0s, t1):
         def one(p, q0, v0):
@@ -123,6 +132,7 @@ def _batch_runner(static, batched_system, t1, kw_items):
         return run(params, q0s, v0s, jnp.asarray(t1, q0s.dtype))
 
     if key is not None:
+        # bounded: each entry holds a compiled program and the arrays of its key
         if len(_RUNNERS) > 32:
             _RUNNERS.clear()
         _RUNNERS[key] = (call, kw_items)  # keep the kwargs alive: their ids are the key

@@ -38,12 +38,15 @@ def is_concrete(*xs) -> bool:
 
 
 def _param_leaves(system):
+    """``[(path, leaf)]`` of every inexact array of ``system``: the parameters a solve reads
+    (integer arrays are indices, fixed when the model was built)."""
     leaves = jax.tree_util.tree_flatten_with_path(eqx.filter(system, eqx.is_inexact_array))[0]
     return [(jax.tree_util.keystr(path), leaf) for path, leaf in leaves if leaf is not None]
 
 
 def value_checks(system, q0, v0):
     """``[(bad, message)]``: boundary value checks (each ``bad`` a boolean scalar)."""
+    # flags, not errors: the caller decides between eqx.error_if and a per-member result code
     checks = [
         (~jnp.all(jnp.isfinite(q0)), "simulate: q0 contains NaN or inf"),
         (~jnp.all(jnp.isfinite(v0)), "simulate: v0 contains NaN or inf"),
@@ -51,13 +54,16 @@ def value_checks(system, q0, v0):
     for name, leaf in _param_leaves(system):
         checks.append((~jnp.all(jnp.isfinite(leaf)), f"simulate: parameter {name} contains NaN or inf"))
     model = system.system if isinstance(system, Scene) else system
+    # a negative mass gives an indefinite mass matrix: the solve would run and be meaningless
     if isinstance(model, Model):
         checks.append((jnp.any(model.body_mass < 0), "simulate: parameter body_mass is negative"))
     return checks
 
 
 def concrete_value_checks(system, q0, v0):
-    """Python errors naming the culprit when every input is concrete."""
+    """Python errors naming the culprit when every input is concrete (the same checks as
+    :func:`value_checks`, with the index, the body name or the value, which a traced check
+    cannot put in its message)."""
     if not np.all(np.isfinite(np.asarray(q0))):
         raise ValueError(f"simulate: q0 contains NaN or inf at indices {np.nonzero(~np.isfinite(np.asarray(q0)))[0].tolist()}")
     if not np.all(np.isfinite(np.asarray(v0))):
@@ -79,13 +85,12 @@ def check_positive(name, value, integer=False):
     reports a bad one through its own result codes."""
     if value is None or not is_concrete(value):
         return
+    # size 1, not shape (): a tolerance given as a one-element array is accepted
     a = np.asarray(value)
     if a.size != 1 or not np.isfinite(a) or a <= 0:
         raise ValueError(f"simulate: {name} must be a positive finite number, got {value!r}")
     if integer and (int(a) != a):
         raise ValueError(f"simulate: {name} must be a positive integer, got {value!r}")
-
-
 
 
 def scene_constraints(scene) -> "maggi.ConstrainedSystem | None":
@@ -96,6 +101,8 @@ def scene_constraints(scene) -> "maggi.ConstrainedSystem | None":
     cs = scene.constraints
     if not isinstance(cs, maggi.ConstrainedSystem):
         return None
+    # the scene's model may have been changed after the constraints were built (tree_at on
+    # scene.system, a vmapped parameter): the constraints must see that model
     if isinstance(cs.base, maggi.ModelBase) and isinstance(scene.system, Model) and cs.base.model is not scene.system:
         cs = eqx.tree_at(lambda c: c.base.model, cs, scene.system)
     return cs
@@ -130,6 +137,7 @@ def _residual(cs, t, q, v):
 def traced_constraint_check(cs, t0, q0, v0):
     """``(bad, message)``: the check of :func:`jaxbody.maggi.initial_state` on traced values."""
     f = cs.constraint_residual(t0, q0, v0)
+    # relative to the speeds, as the eager check: fast motions carry larger rounding residuals
     scale = jnp.maximum(1.0, jnp.max(jnp.abs(v0)))
     bad = jnp.any(jnp.abs(f) > V0_ATOL * scale)
     msg = (
@@ -137,4 +145,3 @@ def traced_constraint_check(cs, t0, q0, v0):
         f"exceeds {V0_ATOL:g}·max(1, max|v0|)); give admissible rates or pass project_initial=True"
     )
     return bad, msg
-

@@ -20,6 +20,8 @@ def raise_on_failure(sol: Solution) -> Solution:
     error with the same text). The callback sits in a custom JVP, so derivatives pass through."""
     failed = ~sol.success
     code = result_code(sol.result)
+    # eager solves raise a plain Python error here, with this call's traceback; only a traced
+    # one needs the callback
     if is_concrete(code, sol.t_final, sol.q_final, sol.v_final):
         if bool(np.any(np.asarray(failed))):
             raise SimulationError(
@@ -27,6 +29,8 @@ def raise_on_failure(sol: Solution) -> Solution:
                                 np.asarray(sol.q_final), np.asarray(sol.v_final))
             )
         return sol
+    # the check is threaded through every array of the solution, so JAX cannot drop it as dead
+    # code and no result is used before it has run
     dynamic, static = eqx.partition(sol, eqx.is_array)
     dynamic = _fail_with_state(dynamic, failed, code, sol.t_final, sol.q_final, sol.v_final)
     return eqx.combine(dynamic, static)
@@ -49,6 +53,7 @@ def _fail_with_state(dynamic, failed, code, t, q, v):
     return jax.tree.unflatten(treedef, out)
 
 
+# the check changes no value: tangents pass through unchanged (a callback has no derivative rule)
 @_fail_with_state.def_jvp
 def _fail_with_state_jvp(primals, tangents):
     return _fail_with_state(*primals), tangents[0]
@@ -61,6 +66,7 @@ def failure_message(failed, code, t, q, v) -> str:
     batch = failed.shape
     flat = failed.reshape(-1)
     i = int(np.flatnonzero(flat)[0]) if flat.any() else 0
+    # every field broadcast to the batch shape: under vmap_method="broadcast_all" some arrive unbatched
     code = int(np.broadcast_to(np.asarray(code), batch).reshape(-1)[i])
     t = float(np.broadcast_to(np.asarray(t), batch).reshape(-1)[i])
     q = np.asarray(q).reshape((-1,) + np.shape(q)[len(batch):])[i]
@@ -74,11 +80,13 @@ def failure_message(failed, code, t, q, v) -> str:
 
 
 def _reason(code: int) -> str:
+    """Why the solve failed, in words; jaxbody's own wording where diffrax's message would
+    mislead (a non-finite state is a blow-up of the motion, not a solver bug)."""
     if code == int(np.asarray(result_code(RESULTS.nonfinite))):
         return ("the state became NaN or inf (the motion blew up, e.g. a fixed step too large for stiff "
                 "dynamics, or a force returned NaN); the state shown is the first non-finite one, the "
                 "trajectory saved before it is finite")
+    # "successful" with a failed solve: diffrax stopped without a code of its own
     if code == int(np.asarray(result_code(RESULTS.successful))):
         return "the step-size controller or the solver's root finder failed"
     return RESULTS[result_from_code(np.asarray(code))]
-

@@ -57,14 +57,18 @@ def as_scene(system, tau):
     scene, or a :class:`DynamicalSystem`) with the extra generalized forces ``tau`` added as an
     actuation effect."""
     if isinstance(system, Model):
+        # a bare model means its own gravity, springs and dampers (jb.scene's defaults)
         system = build_scene(system)
     elif not isinstance(system, Scene):
+        # checked here, before tracing, so that the error names what is missing instead of
+        # failing deep inside diffrax
         missing = [n for n in ("nq", "nv", "qdot", "acceleration") if not hasattr(system, n)]
         if missing:
             raise TypeError(
                 f"simulate needs a jaxbody.Scene, a jaxbody.Model or a system with nq, nv, qdot and acceleration "
                 f"(see jaxbody.simulation.DynamicalSystem); {type(system).__name__} lacks {', '.join(missing)}"
             )
+        # wrapped as it is: the system brings its own forces, the scene adds none
         system = SystemScene(system=system, effects=(), constraints=own_constraints(system))
     if tau is None:
         return system
@@ -75,9 +79,9 @@ def as_scene(system, tau):
         tau = _Constant(t_arr)
     act = Actuation(tau)
     act.check(system)
-    # the same scene class (same path, same planar conversion) with one more effect
+    # the same scene class (same path, planar conversion and kernel) with one more effect: an
+    # extra joint-space force changes neither the path nor the kernel that can run it
     return dataclasses.replace(system, effects=system.effects + (act,))
-
 
 
 def simulate(
@@ -160,6 +164,8 @@ def simulate(
             ``vmap``).
     """
     if isinstance(system, Phases):
+        # each phase declares its own forces and ends on its own event: a run-wide tau, event or
+        # dense output would be ambiguous across the switches
         extra = [name for name, given in (("tau", tau is not None), ("event", event is not None), ("dense", dense)) if given]
         if extra:
             raise ValueError(
@@ -178,4 +184,3 @@ def simulate(
         throw=throw, progress=progress, track_work=track_work, project_initial=project_initial,
     )
     return sol
-

@@ -62,6 +62,7 @@ def _native_arguments(scene, y0, valid, slots) -> tuple:
     """``(model, keyword arguments)`` of :func:`jaxbody.native.rk4_rollout` for a solve of ``scene``
     from ``y0`` (:func:`jaxbody.simulation.field.native_field`)."""
     model, gravity, passive = native_field(scene, y0, slots)
+    # a member that failed the boundary check stays frozen, as under the stepped field
     kwargs = dict(gravity=gravity, frozen=False if valid is None else ~valid, **passive)
     return model, kwargs
 
@@ -73,12 +74,13 @@ def _forward_in_time(t0, t1, dt0):
 
 
 def _native_outputs(y0, t1, slots, q, v, w, t, steps, failed) -> tuple:
-    """:func:`jaxbody.simulation.solve.integrate`'s outputs for a solve that saves the end state alone, from the native
-    solve's results."""
+    """:func:`jaxbody.simulation.solve.integrate`'s outputs for a solve that saves the end state
+    alone, from the native solve's results."""
     dtype = y0[0].dtype
     ys = (q[None], v[None]) + ((y0[2].at[slots[0]].set(w.astype(dtype))[None],) if len(y0) == 3 else ())
     ts = t.astype(dtype)[None]
     stats = {"num_steps": steps, "num_accepted_steps": steps, "num_rejected_steps": jnp.asarray(0)}  # as diffrax gives it
+    # the codes diffrax's loop would give: stopping short of t1 means the step budget ran out
     result = RESULTS.where(t < t1, RESULTS.max_steps_reached, RESULTS.successful)
     result = RESULTS.where(failed, RESULTS.nonfinite, result)
     return ts, ys, ts, ys, stats, result
@@ -108,6 +110,7 @@ def native_or_stepped(rest, y0, native, stepped, reverse):
 
     ``reverse``: ``(forward, backward)``: ``forward(rest, y0) -> (outputs, residuals)`` and
     ``backward(residuals, cotangents) -> cotangent of y0``."""
+    # the custom VJP takes arrays only; the rest (solver, controller, plain Python) is closed over
     dynamic, static = eqx.partition(rest, eqx.is_array)
 
     @jax.custom_vjp
@@ -117,6 +120,8 @@ def native_or_stepped(rest, y0, native, stepped, reverse):
     def forward(dynamic, y0):
         values = jax.tree.map(lambda p: p.value, dynamic)
         y0_values = jax.tree.map(lambda p: p.value, y0)
+        # the native sweep differentiates with respect to the initial state only; a perturbed
+        # parameter needs diffrax's adjoint, so the forward pass is redone step by step then
         if reverse is not None and not any(p.perturbed for p in jax.tree.leaves(dynamic)):
             out, residuals = reverse[0](eqx.combine(values, static), y0_values)
             return out, (None, residuals)
@@ -126,6 +131,7 @@ def native_or_stepped(rest, y0, native, stepped, reverse):
     def backward(residuals, cotangents):
         pullback, native_residuals = residuals
         if pullback is None:
+            # nothing but y0 was perturbed: no cotangent for the rest
             return None, reverse[1](native_residuals, cotangents)
         return pullback(jax.tree.map(_instantiate, cotangents, is_leaf=lambda c: isinstance(c, SymbolicZero)))
 
@@ -138,6 +144,7 @@ def native_reverse(adjoint, max_steps, slots, y0):
     (:func:`jaxbody.native.rk4_rollout_vjp`): the solve keeps as many checkpoints as the
     checkpointed ``adjoint`` would (default: :func:`default_checkpoints`, within its memory
     budget); ``None`` without a bounded step budget."""
+    # the sweep's checkpoint memory is planned over the step budget: without one, diffrax's loop
     if max_steps is None:
         return None
     checkpoints = adjoint.checkpoints
@@ -165,4 +172,3 @@ def native_reverse(adjoint, max_steps, slots, y0):
         return (ct_q, ct_v) + ((ct[2],) if len(y0) == 3 else ())
 
     return forward, backward
-

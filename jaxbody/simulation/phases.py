@@ -56,9 +56,12 @@ def simulate_phases(phases: Phases, q0, v0, t1, *, t0, saveat, n_save, track_wor
     else:
         ts = jnp.asarray(saveat, dtype)
     scenes = list(phases.scenes)
+    # one energy balance over the whole run needs an energy function in every phase
     energetic = track_work and all(sc.has_energy for sc in scenes)
     work_names: tuple[str, ...] = ()
     if energetic:
+        # one work vector for the whole run: the union of the phases' effects, in order of
+        # first appearance, so each effect's work continues across the switches
         for sc in scenes:
             work_names += tuple(n for n in sc.work_names if n not in work_names)
     q, v, start = jnp.asarray(q0, dtype), jnp.asarray(v0, dtype), t0
@@ -66,6 +69,9 @@ def simulate_phases(phases: Phases, q0, v0, t1, *, t0, saveat, n_save, track_wor
     parts, ends, switches = [], [], []
     for i, sc in enumerate(scenes):
         last = i == len(scenes) - 1
+        # every phase saves at all the run's times (clipped into its own span) so that the
+        # phases' arrays have one shape and are joined by a select; only phase 0 checks v0
+        # against the constraints: later phases receive projected velocities
         sol, w = simulate_scene(
             sc, q, v, t1, t0=start, saveat=jnp.clip(ts, start, t1), n_save=None,
             event=None if last else phases.events[i], dense=False, throw=throw, track_work=energetic,
@@ -77,11 +83,13 @@ def simulate_phases(phases: Phases, q0, v0, t1, *, t0, saveat, n_save, track_wor
             ends.append(t1)
             break
         hit = sol.event_occurred
+        # an event that never triggered ends its phase at t1: later phases start and end there
         ends.append(jnp.where(hit, sol.t_final, t1))
         t_sw, q_minus, v_minus = sol.t_final, sol.q_final, sol.v_final
         q, v = q_minus, v_minus
         if phases.transitions:
             q, v = phases.transitions[i](t_sw, q, v)
+        # the next scene may be re-partitioned at the switch state: later phases use that one
         scenes[i + 1], v, lost = _switch_into(scenes[i + 1], t_sw, q, v)
         jump = _energy_jump(sc, scenes[i + 1], hit, q_minus, v_minus, q, v) if energetic else None
         switches.append((hit, jnp.where(hit, t_sw, jnp.nan), jump, jnp.where(hit, lost, 0.0)))
@@ -89,6 +97,7 @@ def simulate_phases(phases: Phases, q0, v0, t1, *, t0, saveat, n_save, track_wor
     return _join_phases(ts, parts, ends, switches, work_names, energetic)
 
 
+# compiled (once per pair of scene structures): eagerly each switch would be op by op
 @eqx.filter_jit
 def _energy_jump(before, after, hit, q_minus, v_minus, q_plus, v_plus):
     """``E⁺ − E⁻`` at a switch (zero when its event did not trigger)."""
@@ -103,6 +112,7 @@ def _join_phases(ts, parts, ends, switches, work_names, energetic):
     phase = sum(((ts > end).astype(jnp.int32) for end in ends[:-1]), jnp.zeros(ts.shape, jnp.int32))
 
     def join(arrays):
+        # a select per phase, not a gather: the phases' saved arrays all have the full length
         out = arrays[-1]
         for k in range(len(arrays) - 2, -1, -1):
             mine = (phase == k).reshape(phase.shape + (1,) * (out.ndim - 1))
@@ -116,6 +126,8 @@ def _join_phases(ts, parts, ends, switches, work_names, energetic):
         energy = join([p.energy for p in parts])
         work = {name: join([p.work[name] for p in parts]) for name in work_names}
         if switches:
+            # the energy a switch changes is booked as work from the switch on, so the balance
+            # closes while each jump stays visible in stats
             work["switches"] = sum((jnp.where(ts > end, jump, 0.0) for end, (_, _, jump, _) in zip(ends, switches)),
                                    jnp.zeros(ts.shape, dtype))
         finite = jnp.isfinite(energy)
@@ -136,6 +148,7 @@ def _join_phases(ts, parts, ends, switches, work_names, energetic):
             key: join([padded(None if p.constraint_drift is None else p.constraint_drift[key]) for p in parts])
             for key in ("position", "velocity")
         }
+    # the first phase that failed decides the run's result (later phases started from its end)
     result = parts[0].result
     for p in parts[1:]:
         ok = (result == RESULTS.successful) | (result == RESULTS.event_occurred)
@@ -166,6 +179,8 @@ def _switch_into(scene, t, q, v):
     cs = scene_constraints(scene)
     if cs is None or cs.n_constraint == 0:
         return scene, v, jnp.zeros((), v.dtype)
+    # re-choosing the partition is a host-side decision (a pivoted QR on concrete values); a
+    # traced switch keeps the partition the constraints were built with
     if cs.epsilon is None and is_concrete(cs, t, q, v):
         cs = cs.repartition(q, v, t)
         scene = scene.with_constraints(cs)
@@ -174,6 +189,8 @@ def _switch_into(scene, t, q, v):
 
 
 def _phases_layout(parts) -> tuple:
+    """The joined layout: the last phase's, each phase's constraint rows named, and the common
+    ``"constraint_names"`` only when every phase has the same rows (else columns differ by phase)."""
     lay = dict(parts[-1].layout)
     names = [dict(p.layout).get("constraint_names", ()) for p in parts]
     lay.pop("constraint_names", None)
@@ -182,4 +199,3 @@ def _phases_layout(parts) -> tuple:
         if all(n == names[0] for n in names):
             lay["constraint_names"] = tuple(names[0])
     return tuple(sorted(lay.items()))
-

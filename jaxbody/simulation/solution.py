@@ -36,6 +36,8 @@ __all__ = [
 class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     """diffrax's result codes plus the boundary check of :func:`simulate`."""
 
+    # results of checks that jaxbody adds around diffrax's loop, so that a batch member reports
+    # them through the same result field as the solver's own failures
     invalid_input = (
         "The initial state or a parameter is NaN/inf or invalid (checked before the solve: finite values, "
         "non-negative masses, initial velocities admissible for the scene's constraints)."
@@ -55,7 +57,7 @@ class SimulationError(RuntimeError):
     """A solve that did not finish (raised with ``throw=True``): says when, where and why."""
 
 
-def result_code(result) -> Array:
+def result_code(result) -> ArrayLike:
     """The integer code of a :class:`RESULTS` item (batched like the item).
 
     An equinox enumeration item is a pytree whose one leaf is its code; reading it through the
@@ -184,10 +186,12 @@ class Solution(eqx.Module):
             "t": np.asarray(self.t),
             "q": np.asarray(self.q),
             "v": np.asarray(self.v),
+            # the integer code: an enumeration item does not survive np.savez, its code does
             "result": np.asarray(result_code(self.result)),
             "t_final": np.asarray(self.t_final),
             "q_final": np.asarray(self.q_final),
             "v_final": np.asarray(self.v_final),
+            # JSON, so that a file needs no pickle (np.load refuses pickles by default)
             "layout": np.asarray(json.dumps(self._layout_dict())),
         }
         if self.energy is not None:
@@ -195,6 +199,7 @@ class Solution(eqx.Module):
             arrays["energy_drift"] = np.asarray(self.energy_drift)
             if self.energy0 is not None:
                 arrays["energy0"] = np.asarray(self.energy0)
+        # dictionaries flatten to "group/key" names: the keys (effect names) vary by scene
         for k, w in self.work.items():
             arrays[f"work/{k}"] = np.asarray(w)
         for k, s in self.stats.items():
@@ -228,6 +233,7 @@ class Solution(eqx.Module):
                 vn += [f"{name}.{c}" for c in v_parts[kind]] if kind in v_parts else [name]
         else:
             qn, vn = [], []
+        # a layout that does not match the arrays (another model's) falls back to plain indices
         if len(qn) != nq or len(vn) != nv:
             qn, vn = [f"q{i}" for i in range(nq)], [f"v{i}" for i in range(nv)]
         cols = [np.asarray(self.t)[:, None], np.asarray(self.q), np.asarray(self.v)]
@@ -248,6 +254,7 @@ def load_solution(path) -> Solution:
     work = {k[5:]: jnp.asarray(v) for k, v in d.items() if k.startswith("work/")}
     stats = {k[6:]: jnp.asarray(v) for k, v in d.items() if k.startswith("stats/")}
     layout = json.loads(str(d["layout"]))
+    # older files have no energy0 (energy_balance then starts from the first saved time)
     result = result_from_code(jnp.asarray(d["result"]))
     return Solution(
         t=jnp.asarray(d["t"]),
@@ -264,6 +271,7 @@ def load_solution(path) -> Solution:
         t_final=jnp.asarray(d["t_final"]),
         q_final=jnp.asarray(d["q_final"]),
         v_final=jnp.asarray(d["v_final"]),
+        # the layout is a static field: hashable tuples, in the sorted order solutions are built with
         layout=tuple(sorted((k, _tuples(v)) for k, v in layout.items())),
         repartition_times=jnp.asarray(d["repartition_times"]) if "repartition_times" in d else None,
     )
@@ -277,6 +285,7 @@ def _tuples(x):
 def balance_scale(energy, energy0=None):
     """``max(|E(t0)|, tiny)``: what the balance is divided by to make it relative (the first
     saved energy stands for ``E(t0)`` when ``energy0`` is unknown, as in older files)."""
+    # tiny, not zero: a system at rest at its zero of potential has E(t0) = 0
     e0 = energy[..., :1] if energy0 is None else energy0[..., None]
     return jnp.maximum(jnp.abs(e0), jnp.finfo(energy.dtype).tiny)
 
@@ -299,6 +308,7 @@ def solution_layout(system) -> tuple:
     """The static description of ``q``/``v`` a :class:`Solution` carries (joint names and kinds,
     addresses, the constraint rows' names): enough to replay or label a saved trajectory
     without the model."""
+    # constraint objects other than jaxbody.maggi's need not name their rows
     names = getattr(getattr(system, "constraints", None), "constraint_names", None)
     extra = (("constraint_names", tuple(names)),) if names is not None else ()
     return tuple(sorted(_layout_of(system) + extra))
@@ -313,6 +323,7 @@ def _layout_of(system) -> tuple:
     q_names, v_names = [], []
     for name, kind in zip(j.names, j.type):
         kind = int(kind)
+        # ball and free joints have more coordinates than velocities: name each one
         if JOINT_KIND_NAMES[kind] == "free":
             q_names += [f"{name}_{c}" for c in ("x", "y", "z", "qw", "qx", "qy", "qz")]
             v_names += [f"{name}_{c}" for c in ("vx", "vy", "vz", "wx", "wy", "wz")]
@@ -332,4 +343,3 @@ def _layout_of(system) -> tuple:
         ("qposadr", tuple(int(a) for a in j.qposadr)),
         ("v_names", tuple(v_names)),
     )
-

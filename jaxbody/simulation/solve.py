@@ -145,7 +145,6 @@ def simulate_scene(
     return sol, w_final
 
 
-
 def make_event(event, dtype):
     """diffrax's terminating event of ``simulate``'s ``event`` argument (``None`` without one):
     its zero located by Newton's method to a hundred ulps of ``dtype``."""
@@ -170,7 +169,6 @@ class _EventCondition(eqx.Module):
         return self.event(t, y[0], y[1])
 
 
-
 def progress_meter(progress):
     """diffrax's progress meter for ``progress``: tqdm's when it is installed, else a text one."""
     if not progress:
@@ -180,7 +178,6 @@ def progress_meter(progress):
     except ImportError:
         return diffrax.TextProgressMeter()
     return diffrax.TqdmProgressMeter()
-
 
 
 def integrate(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps, adjoint, meter, event, dense, slots):
@@ -224,7 +221,6 @@ def integrate(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_ste
         if single:
             yf = ys
     return (ts, ys, tf, yf, stats, result), sol
-
 
 
 @eqx.filter_jit
@@ -312,4 +308,3 @@ def _partition_outcome(solver, sol, result):
     result = RESULTS.where(report["degraded"], RESULTS.partition_degraded, result)
     result = RESULTS.where(report["singular"], RESULTS.singular_parametrisation, result)
     return report["num_repartitions"], report["repartition_times"], result
-

@@ -116,8 +116,6 @@ class RK4Stages(diffrax.AbstractSolver):
         return terms.vf(t0, y0, args)
 
 
-
-
 def _native_rk4_step(terms, args, y0):
     """The whole RK4 step as one native call (:func:`jaxbody.native.rk4_step`), where it computes
     exactly what the four stages would: ``simulate``'s own vector field (not the augmented one of
@@ -158,7 +156,6 @@ def _native_rk4_step(terms, args, y0):
     return fused
 
 
-
 class SemiImplicitEuler(diffrax.AbstractSolver):
     """Symplectic (semi-implicit) Euler on ``y = (q, v, ...)``: ``v₁ = v₀ + h a(t₀, q₀, v₀)``,
     then ``q₁ = q₀ + h q̇(q₀, v₁)``. Fixed steps only; first order, but bounded energy error on
@@ -185,7 +182,6 @@ class SemiImplicitEuler(diffrax.AbstractSolver):
 
     def func(self, terms, t0, y0, args):
         return terms.vf(t0, y0, args)
-
 
 
 class Guarded(DelegatingSolver):
@@ -311,7 +307,6 @@ def apply_failure(failure, ts, ys, tf, stats, result, final_is_last):
     return ts, ys, tf, stats, result
 
 
-
 class UnitQuaternions(eqx.Module):
     """Renormalises the ball/free quaternions of ``y[0]`` (a module, so the model's arrays are
     traced and equal scenes share one compilation)."""
@@ -337,7 +332,6 @@ SOLVERS: dict[str, tuple[Callable[[], diffrax.AbstractSolver], bool]] = {
     "dopri8": (diffrax.Dopri8, True),
     "kvaerno5": (diffrax.Kvaerno5, True),
 }
-
 
 
 def choose_solver(solver, scene, dtype, rtol, atol, dt0, controller):
@@ -367,4 +361,3 @@ def choose_solver(solver, scene, dtype, rtol, atol, dt0, controller):
             controller = diffrax.ConstantStepSize()
     project = UnitQuaternions(scene.system) if scene.has_quaternions else None
     return Guarded(solver_obj, project), controller
-
