@@ -20,7 +20,8 @@ import jax
 import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
 
-from ..native import rk4_rollout, rk4_rollout_checkpointed, rk4_rollout_vjp
+# the module, not its functions: read at call time, so a test can intercept the native calls
+from .. import native
 from .adjoint import default_checkpoints
 from .field import native_field
 from .solution import RESULTS
@@ -92,7 +93,7 @@ def native_solve(scene, y0, t0, t1, dt0, valid, max_steps, slots):
     model, kwargs = _native_arguments(scene, y0, valid, slots)
     w0 = y0[2][slots[0]] if len(y0) == 3 else 0.0
     t1 = _forward_in_time(t0, t1, dt0)
-    out = rk4_rollout(model, y0[0], y0[1], t0, t1, dt0, max_steps, work0=w0, **kwargs)
+    out = native.rk4_rollout(model, y0[0], y0[1], t0, t1, dt0, max_steps, work0=w0, **kwargs)
     return _native_outputs(y0, t1, slots, *out)
 
 
@@ -156,7 +157,7 @@ def native_reverse(adjoint, max_steps, slots, y0):
         model, kwargs = _native_arguments(scene, y0, valid, slots)
         w0 = y0[2][slots[0]] if len(y0) == 3 else 0.0
         t1 = _forward_in_time(t0, t1, dt0)
-        *out, saved = rk4_rollout_checkpointed(model, y0[0], y0[1], t0, t1, dt0, max_steps, checkpoints, work0=w0,
+        *out, saved = native.rk4_rollout_checkpointed(model, y0[0], y0[1], t0, t1, dt0, max_steps, checkpoints, work0=w0,
                                                **kwargs)
         return _native_outputs(y0, t1, slots, *out), (rest, y0, saved, out[4])
 
@@ -167,7 +168,7 @@ def native_reverse(adjoint, max_steps, slots, y0):
         ct = [_instantiate(a)[0] + _instantiate(b)[0] for a, b in zip(ys, yf)]
         model, kwargs = _native_arguments(scene, y0, valid, slots)
         work = ct[2][slots[0]] if len(y0) == 3 else 0.0
-        ct_q, ct_v = rk4_rollout_vjp(model, y0[0], y0[1], t0, t1, dt0, max_steps, checkpoints, saved, steps, ct[0],
+        ct_q, ct_v = native.rk4_rollout_vjp(model, y0[0], y0[1], t0, t1, dt0, max_steps, checkpoints, saved, steps, ct[0],
                                      ct[1], work, **kwargs)
         return (ct_q, ct_v) + ((ct[2],) if len(y0) == 3 else ())
 
