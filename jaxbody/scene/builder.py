@@ -98,6 +98,7 @@ def scene(
     """
     if isinstance(system, Scene):
         raise ValueError("scene: system is already a Scene")
+    # checked now: a misspelt kernel would otherwise surface only when a solve is traced
     if kernel is not None and kernel not in KERNELS:
         raise ValueError(f"scene: kernel must be one of {KERNELS}, got {kernel!r}")
     declared: list[Effect] = []
@@ -164,6 +165,7 @@ def scene(
         declared.append(loads if isinstance(loads, BodyLoads) else BodyLoads(loads))
     if support is not None:
         declared.append(support if isinstance(support, SupportMotion) else SupportMotion(support))
+    # further effects last: the declared order is the order of the work vector and of its names
     declared.extend(effects)
 
     # loads and constraints are spatial: a scene with either keeps the spatial path
@@ -223,6 +225,7 @@ def _constraint_slot(model: Model, constraints):
                 f"scene: constraints are built on a {type(constraints.base).__name__}, not on a "
                 "jaxbody.Model; simulate that ConstrainedSystem directly"
             )
+        # built on another model: its rows would index the wrong coordinates
         if (constraints.nq, constraints.nv) != (model.nq, model.nv):
             raise ValueError(
                 f"scene: constraints are built on a model with (nq, nv) = ({constraints.nq}, "

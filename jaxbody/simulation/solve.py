@@ -68,6 +68,7 @@ def simulate_scene(
     if n_save is not None and n_save < 2:
         raise ValueError(f"n_save must be at least 2 (t0 and t1), got {n_save}")
     solver_obj, controller = choose_solver(solver, scene, q0.dtype, rtol, atol, dt0, controller)
+    # the budget first: the default adjoint's checkpoints are planned over it
     max_steps = step_bound(controller, t0, t1, dt0, max_steps, q0.dtype)
     adjoint = choose_adjoint(adjoint, max_steps, q0.size + v0.size, q0.dtype.itemsize)
     if dt0 is not None:
@@ -81,6 +82,8 @@ def simulate_scene(
         if ts.ndim != 1:
             raise ValueError(f"simulate: saveat must be 1-D times, got shape {ts.shape}")
         saveat = diffrax.SaveAt(ts=ts)
+    # the solution is built from one SubSaveAt of states (plus the end state beside it): dense
+    # output has its own argument and nested saves have no place in a Solution
     if saveat.dense or saveat.subs is not None and not isinstance(saveat.subs, diffrax.SubSaveAt):
         raise ValueError("simulate: pass dense=True instead of SaveAt(dense=True); nested subs are not supported")
     adjoint = choose_adjoint(adjoint)
@@ -90,12 +93,16 @@ def simulate_scene(
         # fixed steps: each trajectory's failure is recorded, not stopped on (one loop predicate
         # for a vmap batch); backsolve's adjoint solve keeps the stopping guard (no solver state)
         solver_obj = Guarded(solver_obj.solver, solver_obj.project, record=True)
+    # constraints that choose their partition automatically re-partition during the solve
+    # (partition_solver wraps the guard); the stage loop is chosen from the outermost wrapper
     solver_obj = for_adjoint(partition_solver(solver_obj, scene, adjoint), adjoint, max_steps)
 
     constrained = scene_constraints(scene) if check_constraints else None
     if constrained is not None and constrained.n_constraint == 0:
         constrained = None
     correction = None
+    # concrete inputs get Python errors with the culprit's index and value; traced ones can only
+    # carry a fixed message, so they are flags for error_if or a result code
     if is_concrete(scene, q0, v0, t0):
         concrete_value_checks(scene, q0, v0)
         if constrained is not None:
@@ -106,6 +113,7 @@ def simulate_scene(
         if constrained is not None:
             bad, msg = traced_constraint_check(constrained, t0, q0, v0)
             if project_initial:
+                # projected only where the check failed, so an admissible v0 passes bit for bit
                 projected = jnp.where(bad, maggi.project_velocities(constrained, q0, v0, t0), v0)
                 correction = projected - v0
                 v0 = projected
@@ -123,6 +131,7 @@ def simulate_scene(
     own = scene.work_names if (track_work and scene.has_energy) else ()
     if work_names is None:
         work_names = own
+    # a phased run passes the union of its phases' work names: this scene's must be among them
     missing = [n for n in own if n not in work_names]
     if missing:
         raise ValueError(f"simulate: internal: work slots {work_names} lack {missing}")
@@ -133,6 +142,7 @@ def simulate_scene(
     else:
         y0 = (q0, v0)
     meter = progress_meter(progress)
+    # the layout and the native switch are computed out here: static arguments of the compiled solve
     sol, w_final = _solve(scene, y0, t0, t1, valid, solver_obj, controller, dt0, saveat, max_steps, adjoint, meter,
                           make_event(event, q0.dtype), solution_layout(scene), dense, slots, tuple(work_names),
                           native_solve_enabled())
