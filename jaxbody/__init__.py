@@ -58,7 +58,7 @@ from .batching import vmap_chunked as vmap_chunked
 # --- planar systems (planar/, examples/) and design (design.py) ---
 from . import planar as planar
 from . import examples as examples
-# --- scenes and simulation (scene.py, effects/, simulation.py) ---
+# --- scenes and simulation (scene/, effects/, simulation/) ---
 from . import effects as effects
 from .scene import Scene as Scene, scene as scene, Phases as Phases, Event as Event
 from .simulation import (

@@ -4,6 +4,7 @@ Nothing here is physics: converting static index lists, checking array shapes be
 (STYLE rule 11, first layer), the skew matrix and planar/3-D vector helpers.
 """
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -98,3 +99,12 @@ def quat_multiply(a, b):
         ],
         axis=-1,
     )
+
+
+def is_concrete(*xs) -> bool:
+    """Whether no leaf of ``xs`` is traced (inside ``jit``, ``vmap`` or ``grad`` they are).
+
+    Structural choices (a scene's path, a check that raises a Python error) can only be made
+    from concrete values; traced ones defer to result codes or keep the general path.
+    """
+    return not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(xs))

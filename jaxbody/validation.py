@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._util import check_shape
+from ._util import check_shape, is_concrete
 from .joints import HINGE, SLIDE
 
 __all__ = ["check_inputs", "validate_parameters", "validate_planar"]
@@ -305,12 +305,12 @@ def check_inputs(system, *, q=None, v=None, tau=None, a=None, external=None) -> 
                 "external_moment (n_body,); pass them to jaxbody.planar functions"
             )
         given[name] = check_shape(value, shape, name, where, dtype=dtype)
-    concrete = not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((system, given)))
+    concrete = is_concrete(system, given)
     if concrete:
         # the flags from one compiled program; under a trace (a jit closing over concrete
         # inputs) they are traced after all
         flags, bad_inputs = _value_flags(system, given)
-        concrete = not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((flags, bad_inputs)))
+        concrete = is_concrete(flags, bad_inputs)
     if concrete:
         # Concrete values (eager call): a plain Python error whose traceback is this call's.
         # (eqx.error_if outside jit reports the stack of the first call that compiled it.) The

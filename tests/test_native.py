@@ -375,7 +375,7 @@ def test_simulate_with_the_native_kernel_equals_the_vectorised_one(models_dir):
     model = jb.from_mjcf(str(models_dir / "panda.xml"))
     fast, ref = jb.scene(model, kernel="auto"), jb.scene(model, kernel="vectorised")
     assert backends.resolve_kernel(model, "auto") == "native"
-    pick = lambda sc: simulation._solver("rk4", sc, jnp.float64, 1e-8, 1e-8, 1e-3, None)[0].solver  # noqa: E731
+    pick = lambda sc: simulation.choose_solver("rk4", sc, jnp.float64, 1e-8, 1e-8, 1e-3, None)[0].solver  # noqa: E731
     assert type(pick(fast)) is simulation.RK4Stages
     q0 = model.qpos0 + 0.2
     v0 = jnp.linspace(-1.0, 1.0, model.nv)

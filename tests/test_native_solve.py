@@ -18,8 +18,8 @@ import pytest
 from jax.test_util import check_grads
 
 import jaxbody as jb
-from jaxbody import simulation
 from jaxbody.backends import native
+from jaxbody.simulation import adjoint as simulation  # default_checkpoints reads its memory budget there
 
 pytestmark = pytest.mark.filterwarnings("ignore:from_mjcf")
 

@@ -338,7 +338,7 @@ def test_constant_steps_bound_the_budget_and_the_checkpoints():
     checkpointed adjoint then stores one checkpoint a step instead of planning for the whole
     default budget); the solution is unchanged, float32 time with its rounding included, and
     the gradient is the same as under the user's budget."""
-    from jaxbody.simulation import _step_bound, default_checkpoints
+    from jaxbody.simulation.adjoint import default_checkpoints, step_bound as _step_bound
 
     # the memory budget holds one checkpoint a step for 1000 steps of a 20-link chain (40 states)
     assert default_checkpoints(1016, 40) == 1016

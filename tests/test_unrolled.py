@@ -161,7 +161,7 @@ def test_rk4_writes_its_stages_out_for_the_unrolled_kernel():
 
     model = chain_model(3, axis=(0.3, -1.0, 0.2), damping=0.05)
     auto, vec = jb.scene(model, kernel="unrolled"), jb.scene(model, kernel="vectorised")
-    pick = lambda sc: simulation._solver("rk4", sc, jnp.float64, 1e-8, 1e-8, 1e-3, None)[0].solver
+    pick = lambda sc: simulation.choose_solver("rk4", sc, jnp.float64, 1e-8, 1e-8, 1e-3, None)[0].solver
     assert type(pick(auto)) is simulation.RK4Stages
     assert type(pick(vec)) is simulation.RK4
     assert type(pick(jb.scene(chain_model(unrolled.MAX_BODIES + 2), kernel="vectorised"))) is simulation.RK4

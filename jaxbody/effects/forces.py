@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 
 from .._types import Array, Float
-from ..kernels import body_wrench_force, spring_displacements
+from ..kernels import spring_displacements
 from ._base import Effect, EffectContext
 
 __all__ = [
@@ -41,10 +41,10 @@ class Gravity(Effect):
     conservative: ClassVar[bool] = True
 
     def generalized_force(self, ctx: EffectContext):
-        return ctx.scene._uniform_field_force(ctx, self.vector)
+        return ctx.scene.uniform_field_force(ctx, self.vector)
 
     def potential_energy(self, ctx: EffectContext):
-        return ctx.scene._uniform_field_potential(ctx, self.vector)
+        return ctx.scene.uniform_field_potential(ctx, self.vector)
 
 
 class JointSprings(Effect):
@@ -177,10 +177,8 @@ class BodyLoads(Effect):
     name: ClassVar[str] = "loads"
 
     def generalized_force(self, ctx: EffectContext):
-        if ctx.scene.path != "spatial":
-            raise ValueError("body loads need the spatial path")
         w = jnp.asarray(self.wrench(ctx.t, ctx.q, ctx.v), ctx.v.dtype)
-        return body_wrench_force(ctx.scene.model, ctx.kinematics, w)
+        return ctx.scene.body_wrench_force(ctx, w[:, :3], w[:, 3:])
 
     def check(self, scene):
         dt = jnp.result_type(float)
@@ -215,7 +213,7 @@ class SupportMotion(Effect):
 
     def generalized_force(self, ctx: EffectContext):
         acc = jnp.asarray(self.acceleration(ctx.t), ctx.v.dtype)
-        return ctx.scene._uniform_field_force(ctx, -acc)
+        return ctx.scene.uniform_field_force(ctx, -acc)
 
     def check(self, scene):
         out = jax.eval_shape(self.position, jax.ShapeDtypeStruct((), jnp.result_type(float)))

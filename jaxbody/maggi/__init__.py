@@ -61,20 +61,14 @@ sequence of constraint sets with switches triggered by events (diffrax events).
 Layout: :mod:`.systems` (base systems, result codes), :mod:`.constraint` (the constraint
 protocol), :mod:`.constrained` (:class:`ConstrainedSystem`: parametrisation, reduced dynamics,
 partition), :mod:`.projections` (building, checks, projections onto the manifold),
-:mod:`.reactions` (outputs along a solution), :mod:`.switching` (impulsive switches),
-:mod:`.partitioning` (the diffrax solver that re-partitions during a solve).
+:mod:`.reactions` (outputs along a solution), :mod:`.switching` (impulsive switches). The
+diffrax solver that re-partitions during a solve belongs to the simulation layer
+(:mod:`jaxbody.simulation.partitioning`).
 """
 
 from ..linalg import solve_general
 from .constrained import ConstrainedSystem, MaggiSolution
 from .constraint import Constraint, VelocityConstraint
-from .partitioning import (
-    MAX_RECORDED_REPARTITIONS,
-    PartitionSolver,
-    partition_report,
-    partition_solver,
-    with_best_partition,
-)
 from .projections import check_constraints, constrain, initial_state, project_positions, project_velocities
 from .reactions import constraint_residuals, reactions
 from .switching import SwitchReport, switch_constraints
@@ -98,9 +92,4 @@ __all__ = [
     "SwitchReport",
     "reactions",
     "constraint_residuals",
-    "PartitionSolver",
-    "partition_solver",
-    "partition_report",
-    "with_best_partition",
-    "MAX_RECORDED_REPARTITIONS",
 ]

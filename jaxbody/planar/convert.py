@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._util import is_concrete
 from ..joints import HINGE
 from ..kinematics import forward_kinematics
 from .system import PlanarSystem, from_parents
@@ -166,10 +167,6 @@ def from_model(model, *, atol: float = 1e-9) -> PlanarSystem:
     return _convert(model, n)
 
 
-def _concrete(*xs) -> bool:
-    return not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(xs))
-
-
 def aligned_system(model, gravity=None, tol: float = 1e-9):
     """The planar system of a model whose hinges are parallel, for a scene's planar path; or ``None``.
 
@@ -186,7 +183,7 @@ def aligned_system(model, gravity=None, tol: float = 1e-9):
     Returns:
         ``(system, plane (2, 3), signs)`` or ``None``.
     """
-    if not _concrete(model) or (gravity is not None and not _concrete(gravity)):
+    if not is_concrete(model) or (gravity is not None and not is_concrete(gravity)):
         return None
     # concrete model: evaluate now even when the scene is built inside a jit trace
     with jax.ensure_compile_time_eval():

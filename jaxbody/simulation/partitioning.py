@@ -8,10 +8,10 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from .._solvers import DelegatingSolver
+from ..maggi import SINGULAR_PIVOT, ConstrainedSystem
+from ..maggi.constrained import pivoted_free, selection_quality
 from ..scene import Scene
-from .constrained import ConstrainedSystem, pivoted_free, selection_quality
-from .systems import SINGULAR_PIVOT
+from .delegating import DelegatingSolver
 
 __all__ = ["MAX_RECORDED_REPARTITIONS", "with_best_partition", "PartitionSolver", "partition_solver", "partition_report"]
 

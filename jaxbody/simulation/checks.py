@@ -1,0 +1,142 @@
+"""The boundary checks of a solve: values checked once, before the solve, never inside it.
+
+With concrete inputs a check raises a ``ValueError`` naming the input (or the constraint rows)
+at fault. Under ``jit``/``vmap`` the same check is traced: :func:`jaxbody.simulate` turns it
+into an ``eqx.error_if`` (``throw=True``) or the result code ``RESULTS.invalid_input`` of that
+member alone (``throw=False``). Nothing is checked inside the vector field, where one bad member
+would stop a whole batch.
+
+:func:`jaxbody.check_inputs` checks a model's own fields; a scene is more than its model (its
+effects carry parameters of their own, a protocol system has any fields), so the finiteness
+check here runs over every inexact leaf of the scene, and its messages name the leaf's path.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import maggi
+from .._util import is_concrete
+from ..model import Model
+from ..scene import Scene
+
+__all__ = [
+    "value_checks",
+    "concrete_value_checks",
+    "check_positive",
+    "scene_constraints",
+    "V0_ATOL",
+    "concrete_constraint_check",
+    "traced_constraint_check",
+]
+
+
+def _param_leaves(system):
+    """``[(path, leaf)]`` of every inexact array of ``system``: the parameters a solve reads
+    (integer arrays are indices, fixed when the model was built)."""
+    leaves = jax.tree_util.tree_flatten_with_path(eqx.filter(system, eqx.is_inexact_array))[0]
+    return [(jax.tree_util.keystr(path), leaf) for path, leaf in leaves if leaf is not None]
+
+
+def value_checks(system, q0, v0):
+    """``[(bad, message)]``: boundary value checks (each ``bad`` a boolean scalar)."""
+    # flags, not errors: the caller decides between eqx.error_if and a per-member result code
+    checks = [
+        (~jnp.all(jnp.isfinite(q0)), "simulate: q0 contains NaN or inf"),
+        (~jnp.all(jnp.isfinite(v0)), "simulate: v0 contains NaN or inf"),
+    ]
+    for name, leaf in _param_leaves(system):
+        checks.append((~jnp.all(jnp.isfinite(leaf)), f"simulate: parameter {name} contains NaN or inf"))
+    model = system.system if isinstance(system, Scene) else system
+    # a negative mass gives an indefinite mass matrix: the solve would run and be meaningless
+    if isinstance(model, Model):
+        checks.append((jnp.any(model.body_mass < 0), "simulate: parameter body_mass is negative"))
+    return checks
+
+
+def concrete_value_checks(system, q0, v0):
+    """Python errors naming the culprit when every input is concrete (the same checks as
+    :func:`value_checks`, with the index, the body name or the value, which a traced check
+    cannot put in its message)."""
+    if not np.all(np.isfinite(np.asarray(q0))):
+        raise ValueError(f"simulate: q0 contains NaN or inf at indices {np.nonzero(~np.isfinite(np.asarray(q0)))[0].tolist()}")
+    if not np.all(np.isfinite(np.asarray(v0))):
+        raise ValueError(f"simulate: v0 contains NaN or inf at indices {np.nonzero(~np.isfinite(np.asarray(v0)))[0].tolist()}")
+    for name, leaf in _param_leaves(system):
+        if not np.all(np.isfinite(np.asarray(leaf))):
+            raise ValueError(f"simulate: parameter {name} contains NaN or inf")
+    model = system.system if isinstance(system, Scene) else system
+    if isinstance(model, Model):
+        bad = np.nonzero(np.asarray(model.body_mass) < 0)[0]
+        if bad.size:
+            raise ValueError(f"simulate: body {model.body_names[bad[0]]!r} has negative mass {float(model.body_mass[bad[0]])}")
+
+
+def check_positive(name, value, integer=False):
+    """``ValueError`` unless ``value`` is a positive finite number (an integer with ``integer``).
+
+    Traced values pass: a tolerance or step inside ``jit`` cannot stop the trace, and diffrax
+    reports a bad one through its own result codes."""
+    if value is None or not is_concrete(value):
+        return
+    # size 1, not shape (): a tolerance given as a one-element array is accepted
+    a = np.asarray(value)
+    if a.size != 1 or not np.isfinite(a) or a <= 0:
+        raise ValueError(f"simulate: {name} must be a positive finite number, got {value!r}")
+    if integer and (int(a) != a):
+        raise ValueError(f"simulate: {name} must be a positive integer, got {value!r}")
+
+
+def scene_constraints(scene) -> "maggi.ConstrainedSystem | None":
+    """The scene's Maggi constraints as a :class:`jaxbody.maggi.ConstrainedSystem` on the
+    scene's own model (so its parameters, not the copy the constraints were built with, give
+    the kinetic metric), or ``None`` (no constraints, or a constraint object of another kind:
+    those are neither checked at ``t0`` nor projected at switches)."""
+    cs = scene.constraints
+    if not isinstance(cs, maggi.ConstrainedSystem):
+        return None
+    # the scene's model may have been changed after the constraints were built (tree_at on
+    # scene.system, a vmapped parameter): the constraints must see that model
+    if isinstance(cs.base, maggi.ModelBase) and isinstance(scene.system, Model) and cs.base.model is not scene.system:
+        cs = eqx.tree_at(lambda c: c.base.model, cs, scene.system)
+    return cs
+
+
+V0_ATOL = 1e-9  # admissible residual of v0, scaled by max(1, max|v0|) (as jaxbody.maggi.initial_state)
+
+
+def concrete_constraint_check(cs, t0, q0, v0, project_initial):
+    """``(v0, correction)``: ``v0`` when it satisfies the constraints ``cs`` at ``(t0, q0)``,
+    else its projection (``project_initial``) or a ``ValueError`` naming the rows at fault;
+    ``correction`` is the projection's change (``None`` without ``project_initial``)."""
+    # the admissible case (the usual one) is decided by one compiled residual; otherwise
+    # jaxbody.maggi.initial_state names the rows at fault or projects
+    f = np.asarray(_residual(cs, t0, q0, v0))
+    scale = max(1.0, float(np.max(np.abs(np.asarray(v0)))))
+    if np.all(np.abs(f) <= V0_ATOL * scale):
+        return v0, (jnp.zeros_like(v0) if project_initial else None)
+    try:
+        _, v0p, correction = maggi.initial_state(cs, q0, v0, t0, project_initial=project_initial, atol=V0_ATOL)
+    except ValueError as err:
+        raise ValueError(f"simulate: v0: {err}") from None
+    return v0p.astype(v0.dtype), (correction.astype(v0.dtype) if project_initial else None)
+
+
+# compiled once per constraint structure: the eager check runs it on every concrete solve
+@eqx.filter_jit
+def _residual(cs, t, q, v):
+    return cs.constraint_residual(t, q, v)
+
+
+def traced_constraint_check(cs, t0, q0, v0):
+    """``(bad, message)``: the check of :func:`jaxbody.maggi.initial_state` on traced values."""
+    f = cs.constraint_residual(t0, q0, v0)
+    # relative to the speeds, as the eager check: fast motions carry larger rounding residuals
+    scale = jnp.maximum(1.0, jnp.max(jnp.abs(v0)))
+    bad = jnp.any(jnp.abs(f) > V0_ATOL * scale)
+    msg = (
+        f"simulate: v0: initial velocities violate the constraints {list(cs.constraint_names)} (a residual "
+        f"exceeds {V0_ATOL:g}·max(1, max|v0|)); give admissible rates or pass project_initial=True"
+    )
+    return bad, msg

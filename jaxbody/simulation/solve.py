@@ -1,0 +1,320 @@
+"""One scene's solve: boundary checks, the diffrax call (or the one-call native solve) and the
+fields of the :class:`Solution` computed from the saved states.
+
+:func:`simulate_scene` is :func:`jaxbody.simulate` for one scene; a phased run calls it once
+per phase, carrying the work vector across the switches.
+"""
+
+import dataclasses
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from .. import maggi
+from .._util import is_concrete
+from ..scene import Event
+from .adjoint import choose_adjoint, step_bound
+from .checks import (
+    check_positive,
+    concrete_constraint_check,
+    concrete_value_checks,
+    scene_constraints,
+    traced_constraint_check,
+    value_checks,
+)
+from .failures import raise_on_failure
+from .field import VectorField
+from .native_solve import native_or_stepped, native_reverse, native_solve, native_solve_applies, native_solve_enabled
+from .solution import RESULTS, Solution, balance_scale, energy_balance, solution_layout
+from .partitioning import PartitionSolver, partition_report, partition_solver, with_best_partition
+from .solvers import Guarded, apply_failure, choose_solver, failure_record, for_adjoint, recording_depth
+
+__all__ = ["simulate_scene", "integrate", "make_event", "progress_meter"]
+
+
+def simulate_scene(
+    scene, q0, v0, t1, *, t0, solver, rtol, atol, dt0, controller, saveat, n_save, max_steps, adjoint, event,
+    dense, throw, progress, track_work, project_initial, work_names=None, work0=None, check_constraints=True,
+    phase_start=False,
+):
+    """:func:`jaxbody.simulate` of one scene (already built, see
+    :func:`jaxbody.simulation.integrate.as_scene`). Returns ``(solution, work at the end)``.
+
+    ``work_names``/``work0``: the work vector carried as state (default: the scene's own
+    non-conservative effects, from zero); a phased run passes the union over its phases and
+    the work reached at the switch. ``phase_start``: ``t0`` may equal ``t1`` (a phase that
+    starts at the end of the run because an earlier event never triggered).
+    """
+    dtype = jnp.result_type(float)
+    q0 = jnp.asarray(q0)
+    q0 = q0.astype(q0.dtype if jnp.issubdtype(q0.dtype, jnp.inexact) else dtype)
+    v0 = jnp.asarray(v0).astype(q0.dtype)
+    if q0.shape != (scene.nq,) or v0.shape != (scene.nv,):
+        raise ValueError(
+            f"q0 must have shape ({scene.nq},) and v0 ({scene.nv},), got {q0.shape} and {v0.shape}"
+        )
+    for name, val in (("rtol", rtol), ("atol", atol), ("dt0", dt0)):
+        check_positive(name, val)
+    if max_steps is not None:
+        check_positive("max_steps", max_steps, integer=True)
+    if not phase_start and is_concrete(t0, t1) and not float(np.asarray(t1)) > float(np.asarray(t0)):
+        raise ValueError(f"simulate: t1 ({float(np.asarray(t1))}) must be after t0 ({float(np.asarray(t0))})")
+    if saveat is not None and n_save is not None:
+        raise ValueError("give saveat or n_save, not both")
+    if n_save is not None and n_save < 2:
+        raise ValueError(f"n_save must be at least 2 (t0 and t1), got {n_save}")
+    solver_obj, controller = choose_solver(solver, scene, q0.dtype, rtol, atol, dt0, controller)
+    # the budget first: the default adjoint's checkpoints are planned over it
+    max_steps = step_bound(controller, t0, t1, dt0, max_steps, q0.dtype)
+    adjoint = choose_adjoint(adjoint, max_steps, q0.size + v0.size, q0.dtype.itemsize)
+    if dt0 is not None:
+        dt0 = jnp.asarray(dt0, q0.dtype)
+    t0 = jnp.asarray(t0, q0.dtype)
+    t1 = jnp.asarray(t1, q0.dtype)
+    if saveat is None:
+        saveat = diffrax.SaveAt(ts=jnp.linspace(t0, t1, 101 if n_save is None else n_save))
+    elif not isinstance(saveat, diffrax.SaveAt):
+        ts = jnp.asarray(saveat, dtype=q0.dtype)
+        if ts.ndim != 1:
+            raise ValueError(f"simulate: saveat must be 1-D times, got shape {ts.shape}")
+        saveat = diffrax.SaveAt(ts=ts)
+    # the solution is built from one SubSaveAt of states (plus the end state beside it): dense
+    # output has its own argument and nested saves have no place in a Solution
+    if saveat.dense or saveat.subs is not None and not isinstance(saveat.subs, diffrax.SubSaveAt):
+        raise ValueError("simulate: pass dense=True instead of SaveAt(dense=True); nested subs are not supported")
+    adjoint = choose_adjoint(adjoint)
+    if isinstance(controller, (diffrax.ConstantStepSize, diffrax.StepTo)) and not isinstance(
+        adjoint, diffrax.BacksolveAdjoint
+    ):
+        # fixed steps: each trajectory's failure is recorded, not stopped on (one loop predicate
+        # for a vmap batch); backsolve's adjoint solve keeps the stopping guard (no solver state)
+        solver_obj = Guarded(solver_obj.solver, solver_obj.project, record=True)
+    # constraints that choose their partition automatically re-partition during the solve
+    # (partition_solver wraps the guard); the stage loop is chosen from the outermost wrapper
+    solver_obj = for_adjoint(partition_solver(solver_obj, scene, adjoint), adjoint, max_steps)
+
+    constrained = scene_constraints(scene) if check_constraints else None
+    if constrained is not None and constrained.n_constraint == 0:
+        constrained = None
+    correction = None
+    # concrete inputs get Python errors with the culprit's index and value; traced ones can only
+    # carry a fixed message, so they are flags for error_if or a result code
+    if is_concrete(scene, q0, v0, t0):
+        concrete_value_checks(scene, q0, v0)
+        if constrained is not None:
+            v0, correction = concrete_constraint_check(constrained, t0, q0, v0, project_initial)
+        valid = None
+    else:
+        checks = value_checks(scene, q0, v0)
+        if constrained is not None:
+            bad, msg = traced_constraint_check(constrained, t0, q0, v0)
+            if project_initial:
+                # projected only where the check failed, so an admissible v0 passes bit for bit
+                projected = jnp.where(bad, maggi.project_velocities(constrained, q0, v0, t0), v0)
+                correction = projected - v0
+                v0 = projected
+            else:
+                checks.append((bad, msg))
+        if throw:
+            for bad, msg in checks:
+                q0 = eqx.error_if(q0, bad, msg)
+            valid = None
+        else:
+            valid = ~jnp.any(jnp.stack([b for b, _ in checks]))
+            # a member that failed the check integrates a safe state: frozen (see VectorField)
+            q0 = jnp.where(valid, q0, jnp.nan_to_num(q0, nan=0.0, posinf=0.0, neginf=0.0))
+            v0 = jnp.where(valid, v0, jnp.nan_to_num(v0, nan=0.0, posinf=0.0, neginf=0.0))
+    own = scene.work_names if (track_work and scene.has_energy) else ()
+    if work_names is None:
+        work_names = own
+    # a phased run passes the union of its phases' work names: this scene's must be among them
+    missing = [n for n in own if n not in work_names]
+    if missing:
+        raise ValueError(f"simulate: internal: work slots {work_names} lack {missing}")
+    slots = tuple(work_names.index(n) for n in own)
+    if track_work and scene.has_energy and work_names:
+        w0 = jnp.zeros((len(work_names),), q0.dtype) if work0 is None else jnp.asarray(work0, q0.dtype)
+        y0 = (q0, v0, w0)
+    else:
+        y0 = (q0, v0)
+    meter = progress_meter(progress)
+    # the layout and the native switch are computed out here: static arguments of the compiled solve
+    sol, w_final = _solve(scene, y0, t0, t1, valid, solver_obj, controller, dt0, saveat, max_steps, adjoint, meter,
+                          make_event(event, q0.dtype), solution_layout(scene), dense, slots, tuple(work_names),
+                          native_solve_enabled())
+    if correction is not None:
+        sol = dataclasses.replace(sol, stats={**sol.stats, "v0_correction": correction})
+    if valid is not None:
+        sol = eqx.tree_at(lambda s: s.result, sol, RESULTS.where(valid, sol.result, RESULTS.invalid_input))
+    if throw:
+        sol = raise_on_failure(sol)
+    return sol, w_final
+
+
+def make_event(event, dtype):
+    """diffrax's terminating event of ``simulate``'s ``event`` argument (``None`` without one):
+    its zero located by Newton's method to a hundred ulps of ``dtype``."""
+    if event is None:
+        return None
+    if not isinstance(event, Event):
+        if not callable(event):
+            raise ValueError(f"simulate: event must be a jaxbody.Event or a callable g(t, q, v), got {type(event).__name__}")
+        event = Event(event)
+    tol = 100 * float(jnp.finfo(dtype).eps)
+    return diffrax.Event(_EventCondition(event), root_finder=optx.Newton(rtol=tol, atol=tol), direction=event.direction)
+
+
+class _EventCondition(eqx.Module):
+    """diffrax's ``cond_fn(t, y, args)`` of a :class:`jaxbody.Event` (a module, not a closure made
+    per call, so that repeated solves with the same event reuse one compilation)."""
+
+    event: Event
+
+    def __call__(self, t, y, args, **kwargs):
+        del args, kwargs
+        return self.event(t, y[0], y[1])
+
+
+def progress_meter(progress):
+    """diffrax's progress meter for ``progress``: tqdm's when it is installed, else a text one."""
+    if not progress:
+        return diffrax.NoProgressMeter()
+    try:
+        import tqdm  # noqa: F401  (optional dependency: only asked for when a meter is)
+    except ImportError:
+        return diffrax.TextProgressMeter()
+    return diffrax.TqdmProgressMeter()
+
+
+def integrate(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps, adjoint, meter, event, dense, slots):
+    """The step-by-step solve (diffrax): ``(ts, ys, tf, yf, stats, result)`` (saved times and
+    states, the final time and state as arrays of one entry, the step counts and the result,
+    each trajectory's failure applied) and diffrax's solution."""
+    main = saveat.subs if saveat.subs is not None else diffrax.SubSaveAt(ts=saveat.ts, t0=saveat.t0, t1=saveat.t1, steps=saveat.steps)
+    # the end state is saved separately, except with backsolve (which takes no SaveAt(subs=...))
+    # and when the saved times include t1 (diffrax saves the state the solve ended in there, at
+    # t1 or where it stopped): there the last saved point stands for it (one save state less
+    # carried through the loop and its checkpoints)
+    single = isinstance(adjoint, diffrax.BacksolveAdjoint) or (main.t1 and not isinstance(solver, PartitionSolver))
+    depth = recording_depth(solver)
+    state = isinstance(solver, PartitionSolver) or depth is not None
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(VectorField(slots)),
+        solver,
+        t0,
+        t1,
+        dt0,
+        y0,
+        args=(scene, valid),
+        saveat=diffrax.SaveAt(subs=main, dense=dense, solver_state=state) if single else diffrax.SaveAt(
+            subs=[main, diffrax.SubSaveAt(t1=True)], dense=dense, solver_state=state),
+        stepsize_controller=controller,
+        max_steps=max_steps,
+        adjoint=adjoint,
+        throw=False,
+        progress_meter=meter,
+        event=event,
+    )
+    ys, yf = (sol.ys, sol.ys) if single else sol.ys
+    ts, tf = (sol.ts, sol.ts) if single else sol.ts
+    stats = {k: jnp.asarray(sol.stats[k]) for k in ("num_steps", "num_accepted_steps", "num_rejected_steps")}
+    result = RESULTS.promote(sol.result)
+    failure = None if depth is None else failure_record(sol.solver_state, depth)
+    if failure is not None:
+        # a trajectory that failed has no derivative to give: no cotangent enters the loop's state
+        failure = jax.lax.stop_gradient(failure)
+        ts, ys, tf, stats, result = apply_failure(failure, ts, ys, tf, stats, result, single and main.t1)
+        if single:
+            yf = ys
+    return (ts, ys, tf, yf, stats, result), sol
+
+
+@eqx.filter_jit
+def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps, adjoint, meter, event, layout, dense,
+           slots, work_names, native_enabled):
+    """The solve and the solution's fields. ``native_enabled``: whether a solve may run as one
+    native call (:func:`jaxbody.simulation.native_solve.native_solve_enabled`, read by the
+    caller so that it keys the compiled program)."""
+    one_call = native_enabled and native_solve_applies(scene, y0, solver, controller, saveat, adjoint, meter, event,
+                                                       dense, slots)
+    sol = None
+    if not one_call:
+        (ts, ys, tf, yf, stats, result), sol = integrate(scene, y0, t0, t1, valid, solver, controller, dt0, saveat,
+                                                         max_steps, adjoint, meter, event, dense, slots)
+    else:
+        # one native call; derivatives by the native reverse sweep (initial state alone) or
+        # through the step-by-step solve
+        def stepped(rest, y0):
+            scene, t0, t1, dt0, valid, solver, controller, adjoint = rest
+            return integrate(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps, adjoint, meter,
+                             event, dense, slots)[0]
+
+        def native(rest, y0):
+            scene, t0, t1, dt0, valid = rest[:5]
+            return native_solve(scene, y0, t0, t1, dt0, valid, max_steps, slots)
+
+        rest = (scene, t0, t1, dt0, valid, solver, controller, adjoint)
+        # the native reverse sweep keeps checkpoints as the checkpointed adjoint would; another
+        # adjoint asked for its own way of differentiating, which the stepped solve honours
+        checkpointed = isinstance(adjoint, diffrax.RecursiveCheckpointAdjoint)
+        reverse = native_reverse(adjoint, max_steps, slots, y0) if checkpointed else None
+        ts, ys, tf, yf, stats, result = native_or_stepped(rest, y0, native, stepped, reverse)
+    q, v = ys[0], ys[1]
+    finite = jnp.all(jnp.isfinite(q), axis=-1) & jnp.all(jnp.isfinite(v), axis=-1)
+    work = {}
+    if scene.has_energy:
+        # diffrax pads unsaved entries with inf: evaluate energies on a safe state there
+        qs = jnp.where(finite[:, None], q, y0[0])
+        vs = jnp.where(finite[:, None], v, 0.0)
+        energy = jnp.where(finite, jax.vmap(scene.total_energy)(qs, vs), jnp.nan)
+        if len(ys) == 3:
+            work = {name: ys[2][:, i] for i, name in enumerate(work_names)}
+        # the balance from the initial state, not from the first saved time (which may be later)
+        energy0 = scene.total_energy(y0[0], y0[1])
+        bal = energy_balance(energy, work, energy0, y0[2] if len(y0) == 3 else None) / balance_scale(energy, energy0)
+        drift = jnp.max(jnp.where(finite, jnp.abs(bal), 0.0))
+    else:
+        energy = drift = energy0 = None
+        qs, vs = q, v
+    cdrift = reactions = None
+    if scene.constraints is not None:
+        # constraint residuals and reactions at the saved states (padding entries: NaN)
+        if not scene.has_energy:
+            qs = jnp.where(finite[:, None], q, y0[0])
+            vs = jnp.where(finite[:, None], v, y0[1])
+        t_safe = jnp.where(finite, ts, t0)
+        pos, vel = jax.vmap(scene.constraint_drift)(t_safe, qs, vs)
+        cdrift = {
+            "position": jnp.where(finite[:, None], pos, jnp.nan),
+            "velocity": jnp.where(finite[:, None], vel, jnp.nan),
+        }
+        # Λ does not depend on the coordinate partition: each state with its best-conditioned one
+        lam = jax.vmap(lambda tt, a, b: with_best_partition(scene, tt, a, b).evaluate(tt, a, b)[2])(t_safe, qs, vs)
+        reactions = jnp.where(finite[:, None], lam, jnp.nan)
+    if sol is None:
+        stats["num_repartitions"], repartition_times = jnp.zeros((), jnp.int32), None
+    else:
+        stats["num_repartitions"], repartition_times, result = _partition_outcome(solver, sol, result)
+    out = Solution(
+        t=ts, q=q, v=v, energy=energy, work=work, energy_drift=drift, constraint_drift=cdrift,
+        reactions=reactions, stats=stats, result=result, t_final=tf[-1], q_final=yf[0][-1], v_final=yf[1][-1], layout=layout,
+        interpolation=sol.interpolation if dense and sol is not None else None, repartition_times=repartition_times, energy0=energy0,
+    )
+    return out, (yf[2][-1] if len(yf) == 3 else None)
+
+
+def _partition_outcome(solver, sol, result):
+    """``(num_repartitions, repartition_times, result)`` of a solve: what the
+    :class:`jaxbody.simulation.PartitionSolver` did (zero and ``None`` for other solvers); a solve
+    it stopped on a degraded partition gets ``RESULTS.partition_degraded``, one stopped on a
+    singular parametrisation ``RESULTS.singular_parametrisation``."""
+    report = partition_report(solver, sol.solver_state)
+    if report is None:
+        return jnp.zeros((), jnp.int32), None, result
+    result = RESULTS.where(report["degraded"], RESULTS.partition_degraded, result)
+    result = RESULTS.where(report["singular"], RESULTS.singular_parametrisation, result)
+    return report["num_repartitions"], report["repartition_times"], result
