@@ -23,6 +23,7 @@ from ..backends import native
 from .._types import Array
 from ..kinematics import normalize_qpos
 from ..scene import Scene
+from ..backends.scalar import RK4_A, RK4_B, RK4_C
 from .delegating import DelegatingSolver, for_adjoint
 from .field import VectorField, native_field
 from .solution import RESULTS
@@ -44,11 +45,13 @@ __all__ = [
 ]
 
 
+# the one classical RK4 tableau of the package (also what the native generator emits); diffrax
+# leaves out the first stage's zero row and node
 _RK4_TABLEAU = diffrax.ButcherTableau(
-    a_lower=(np.array([0.5]), np.array([0.0, 0.5]), np.array([0.0, 0.0, 1.0])),
-    b_sol=np.array([1 / 6, 1 / 3, 1 / 3, 1 / 6]),
-    b_error=np.zeros(4),
-    c=np.array([0.5, 0.5, 1.0]),
+    a_lower=tuple(np.array(row) for row in RK4_A[1:]),
+    b_sol=np.array(RK4_B),
+    b_error=np.zeros(len(RK4_B)),
+    c=np.array(RK4_C[1:]),
 )
 
 
@@ -104,10 +107,12 @@ class RK4Stages(diffrax.AbstractSolver):
         def ahead(k, c):
             return jax.tree.map(lambda y, d: y + c * d, y0, k)
 
+        # the tableau's nodes and rows (each stage reads only the one before it); the weights
+        # RK4_B are applied as (1, 2, 2, 1) / 6, the rounding the native step uses too
         k1 = increment(t0, y0)
-        k2 = increment(t0 + h / 2, ahead(k1, 0.5))
-        k3 = increment(t0 + h / 2, ahead(k2, 0.5))
-        k4 = increment(t1, ahead(k3, 1.0))
+        k2 = increment(t0 + RK4_C[1] * h, ahead(k1, RK4_A[1][0]))
+        k3 = increment(t0 + RK4_C[2] * h, ahead(k2, RK4_A[2][1]))
+        k4 = increment(t1, ahead(k3, RK4_A[3][2]))
         y1 = jax.tree.map(lambda y, a, b, c, d: y + (a + 2 * b + 2 * c + d) / 6, y0, k1, k2, k3, k4)
         # diffrax's Hermite interpolation takes the end slopes as increments over the step
         k = jax.tree.map(lambda a, d: jnp.stack([a, d]), k1, k4)
