@@ -55,7 +55,7 @@ from .dynamics import (
 )
 from . import linalg as linalg
 from .batching import vmap_chunked as vmap_chunked
-# --- planar systems (planar/, examples/) and design (design.py) ---
+# --- planar systems (planar/, examples/) and design (design/) ---
 from . import planar as planar
 from . import examples as examples
 # --- scenes and simulation (scene/, effects/, simulation/) ---
@@ -70,10 +70,10 @@ from .simulation import (
     simulate as simulate,
     simulate_batch as simulate_batch,
 )
-# --- identification and balancing design (identify.py, design.py) ---
+# --- identification and balancing design (identify/, design/) ---
 from . import identify as identify
 from . import design as design
-# --- constraints: Maggi's equations (maggi.py, constraints.py) ---
+# --- constraints: Maggi's equations (maggi/, constraints.py) ---
 from . import maggi as maggi
 from . import constraints as constraints
 # --- import (io/mujoco.py) ---

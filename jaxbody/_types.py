@@ -1,4 +1,4 @@
-"""Shared jaxtyping aliases (STYLE rule 8).
+"""Shared jaxtyping aliases (named dimensions on every public function, defined once).
 
 Dimension names: ``n_body`` bodies, ``nq``/``nv`` generalized coordinates/velocities,
 ``n_joint`` joints, ``n_pair`` (ancestor, descendant) pairs.

@@ -1,7 +1,7 @@
 """Private index, shape and small-vector helpers shared by every module (one place each).
 
 Nothing here is physics: converting static index lists, checking array shapes before tracing
-(STYLE rule 11, first layer), the skew matrix and planar/3-D vector helpers.
+(the first of the three error layers: static misuse raises while tracing), the skew matrix and planar/3-D vector helpers.
 """
 
 import jax
@@ -12,7 +12,7 @@ __all__ = ["int_tuple", "index", "check_shape", "skew", "cross2", "perp2", "rot2
 
 
 def int_tuple(a) -> tuple[int, ...]:
-    """Static index list as a tuple of Python ints (hashable; STYLE rule 4)."""
+    """Static index list as a tuple of Python ints (hashable, so it can sit in a static field)."""
     return tuple(int(v) for v in np.asarray(a, dtype=np.int64).reshape(-1).tolist())
 
 

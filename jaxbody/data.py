@@ -8,7 +8,7 @@ identification read the same pytree instead of recomputing the kinematics.
 
 ``compute_data`` checks shapes only (before tracing); values are checked once at the API
 boundary with :func:`jaxbody.check_inputs`, never here, so it is safe inside a vmapped solver
-loop (STYLE rule 11).
+loop (value checks return result codes inside loops instead of raising).
 
 Example::
 

@@ -137,7 +137,7 @@ class Free(JointSpec):
 
 
 class JointLayout:
-    """Static joint and DoF structure of a model (immutable and hashable; STYLE rule 4).
+    """Static joint and DoF structure of a model (immutable and hashable: static fields of the model).
 
     Every index array is built at construction; the traced helpers (:meth:`support_sum`,
     :meth:`before_sum`, :meth:`mass_mask`, :meth:`kind_groups`) follow the tree's traversal

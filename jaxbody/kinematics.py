@@ -18,7 +18,6 @@ Points attached to each body ``k`` (spec §2):
 """
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 

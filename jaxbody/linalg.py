@@ -86,7 +86,7 @@ AUTO_UNROLLED_MAX_N = 8
 
 
 # ---------------------------------------------------------------------------------------
-# Validation (shapes and static options: trace-time ValueError, STYLE rule 11)
+# Validation (shapes and static options: trace-time ValueError)
 # ---------------------------------------------------------------------------------------
 
 
@@ -349,7 +349,7 @@ def failed_pivot(L: Float[ArrayLike, "n n"]) -> Int[Array, ""]:
     A pivot fails when it is not positive and finite (``A`` not positive definite, or
     NaN/inf in ``A``); :func:`cholesky` then leaves NaN on the diagonal from that column
     on. Under ``vmap`` this gives one code per batch member, so a batch survives a bad
-    member (STYLE rule 11).
+    member (a result code per member, never an exception inside a loop).
 
     Args:
         L: factor returned by :func:`cholesky`, shape ``(n, n)``.

@@ -1,4 +1,7 @@
-"""Body-tree topology as static index arrays (spec §1; STYLE rules 4–6).
+"""Body-tree topology as static index arrays (spec §1).
+
+Computed once in NumPy and stored hashably (static fields); bodies are numbered parent-first;
+traced code sums over subtrees and paths with these arrays, never with a Python loop over bodies.
 
 A tree is given by a parent array: ``parent[k]`` is the base body (spec: "base body",
 the parent) of body ``k`` or ``-1`` for a body jointed to the ground (or to a translating

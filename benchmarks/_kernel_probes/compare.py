@@ -18,7 +18,6 @@ Usage::
 
 import argparse
 import json
-import os
 import pathlib
 import sys
 import tempfile

@@ -6,7 +6,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import identify, planar, spatial
+from .. import planar, spatial
+from ..sampling import random_states
 from ..dynamics import augmented_bodies
 from ..kinematics import forward_kinematics
 from ..model import Model
@@ -21,7 +22,7 @@ def _random_configs(system, n, seed):
         cfg = np.zeros((n, system.nq))
         cfg[:, system.n_base :] = rng.uniform(-np.pi, np.pi, size=(n, system.n_body))
         return cfg
-    q, _, _ = identify.random_states(system, n, seed)
+    q, _, _ = random_states(system, n, seed)
     return q
 
 

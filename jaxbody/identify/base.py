@@ -13,7 +13,8 @@ from ..dynamics import augmented_bodies
 from ..kinematics import forward_kinematics
 from ..model import Model
 from .inertial import check_extra, n_extra, parameter_names, reference_parameters, with_parameters
-from .regression import random_states, stacked_regressor
+from ..sampling import random_states
+from .regression import stacked_regressor
 
 __all__ = ["BaseParameters", "base_parameters"]
 

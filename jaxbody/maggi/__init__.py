@@ -72,7 +72,7 @@ from .constraint import Constraint, VelocityConstraint
 from .projections import check_constraints, constrain, initial_state, project_positions, project_velocities
 from .reactions import constraint_residuals, reactions
 from .switching import SwitchReport, switch_constraints
-from .systems import SINGULAR_PIVOT, MaggiResult, ModelBase, QuasiVelocitySystem
+from .systems import SINGULAR_PIVOT as SINGULAR_PIVOT, MaggiResult, ModelBase, QuasiVelocitySystem
 
 __all__ = [
     "MaggiResult",

@@ -104,7 +104,7 @@ class Scene(eqx.Module):
 
     @abc.abstractmethod
     def is_direct(self) -> bool:
-        """Whether the vector field runs :func:`jaxbody.kernels.acceleration` directly, with no
+        """Whether the vector field runs :func:`jaxbody.backends.acceleration` directly, with no
         kinematics of the scene's own (see :meth:`jaxbody.scene.SpatialScene.is_direct`)."""
 
     @abc.abstractmethod

@@ -84,10 +84,10 @@ def scene(
         effects: further effect modules (contact, limits, ...), appended in order.
         planar: ``None`` chooses the planar absolute-angle path when the model allows it;
             ``False`` forces the spatial path; ``True`` requires the planar path.
-        kernel: forward-dynamics kernel of the spatial path (:func:`jaxbody.kernels.acceleration`):
-            ``None`` (:data:`jaxbody.kernels.DEFAULT_KERNEL`, the vectorised kernel unless
+        kernel: forward-dynamics kernel of the spatial path (:func:`jaxbody.backends.acceleration`):
+            ``None`` (:data:`jaxbody.backends.DEFAULT_KERNEL`, the vectorised kernel unless
             ``$JAXBODY_KERNEL`` says otherwise), ``"auto"`` (the native kernel where it can be
-            built, :func:`jaxbody.kernels.resolve_kernel`), ``"native"``, ``"unrolled"`` or
+            built, :func:`jaxbody.backends.resolve_kernel`), ``"native"``, ``"unrolled"`` or
             ``"vectorised"``. docs/performance.md says when each is faster.
 
     Returns:

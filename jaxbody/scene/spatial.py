@@ -8,7 +8,6 @@ from typing import final
 
 import equinox as eqx
 import jax.numpy as jnp
-import numpy as np
 
 from ..backends import native, unrolled
 from .._types import Array, Float
@@ -27,8 +26,8 @@ class SpatialScene(ModelScene):
     """A :class:`jaxbody.Model` on the spatial path (see :class:`jaxbody.Scene`).
 
     Attributes:
-        kernel: forward-dynamics kernel (:func:`jaxbody.kernels.acceleration`); ``None`` for
-            :data:`jaxbody.kernels.DEFAULT_KERNEL`.
+        kernel: forward-dynamics kernel (:func:`jaxbody.backends.acceleration`); ``None`` for
+            :data:`jaxbody.backends.DEFAULT_KERNEL`.
     """
 
     kernel: str | None = eqx.field(static=True, default=None)
@@ -38,7 +37,7 @@ class SpatialScene(ModelScene):
         return "spatial"
 
     def is_direct(self) -> bool:
-        """Whether the vector field can run :func:`jaxbody.kernels.acceleration` directly.
+        """Whether the vector field can run :func:`jaxbody.backends.acceleration` directly.
 
         True without constraints when every effect is a uniform gravity field or a joint-space
         force (springs, dampers, actuation): those need no kinematics of their own, gravity

@@ -11,10 +11,10 @@ the simulation protocol is wrapped as is). It returns a :class:`Solution` pytree
 
 A fixed-step ``"rk4"`` solve on the native kernel that keeps only its end state
 (``saveat=SaveAt(t1=True)``), of a scene of gravity, joint springs and joint dampers, without
-an event, runs as one native call (:func:`jaxbody.native.rk4_rollout`) instead of diffrax's
+an event, runs as one native call (:func:`jaxbody.backends.native.rk4_rollout`) instead of diffrax's
 loop. Its solution is the one diffrax's loop gives (the same steps, failures and result codes).
 Its gradient with respect to the initial state is a native reverse sweep
-(:func:`jaxbody.native.rk4_rollout_vjp`); other derivatives go through diffrax's loop.
+(:func:`jaxbody.backends.native.rk4_rollout_vjp`); other derivatives go through diffrax's loop.
 ``$JAXBODY_NATIVE_SOLVE=0`` turns this off.
 
 Errors come in three layers. Shapes, unknown names and impossible options raise ``ValueError``

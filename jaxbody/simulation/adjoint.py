@@ -44,7 +44,7 @@ def default_checkpoints(max_steps: int | None, n_state: int, itemsize: int = 8) 
     and what the solver and controller carry besides — counted as ``3 * n_state`` numbers, a
     margin for solvers that carry more than RK4 (XLA's temporaries of a 1000-step RK4 gradient,
     one checkpoint a step, are about 1.2 numbers per state and checkpoint for the Panda arm and
-    1.1 for a 20-link chain: benchmarks/results/gradients_native*.md). Never fewer than
+    1.1 for a 20-link chain: benchmarks/results/gradients.md). Never fewer than
     ``ceil(log2(max_steps)) + 1`` (the O(n log n) recomputation bound of diffrax's default) and
     never more than ``max_steps`` (then no step is recomputed twice). Memory stays bounded
     whatever the horizon. (Counted as ``4 * n_state``, a 20-link chain got 819 checkpoints for

@@ -50,7 +50,7 @@ class VectorField(eqx.Module):
 
 def native_field(scene, y0, slots):
     """``(model, gravity, passive)`` where the native RK4 programs compute ``scene``'s vector field
-    on the state ``y0 = (q, v[, w])`` exactly (:func:`jaxbody.native.rk4_step`'s arguments):
+    on the state ``y0 = (q, v[, w])`` exactly (:func:`jaxbody.backends.native.rk4_step`'s arguments):
     the native kernel, and effects that are a uniform gravity field, joint dampers and joint
     springs (nothing that depends on time); a work vector ``w`` must hold the dampers' work
     alone (``slots``). ``None`` otherwise."""

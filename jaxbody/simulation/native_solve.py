@@ -2,12 +2,12 @@
 
 A fixed-step ``"rk4"`` solve on the native kernel that keeps only its end state
 (``saveat=SaveAt(t1=True)``), of a scene of gravity, joint springs and joint dampers, without
-an event, runs as one native call (:func:`jaxbody.native.rk4_rollout`) instead of diffrax's
+an event, runs as one native call (:func:`jaxbody.backends.native.rk4_rollout`) instead of diffrax's
 loop. It applies only there because only there does the native program compute exactly what
 the loop would: the same field (:func:`jaxbody.simulation.field.native_field`), the same steps,
 failures and result codes, and nothing saved between the ends that the program would have to
 hand back step by step. Its gradient with respect to the initial state is a native reverse
-sweep (:func:`jaxbody.native.rk4_rollout_vjp`); any other derivative (the scene's parameters)
+sweep (:func:`jaxbody.backends.native.rk4_rollout_vjp`); any other derivative (the scene's parameters)
 goes through diffrax's loop, which is then run for the derivative alone.
 ``$JAXBODY_NATIVE_SOLVE=0`` turns this off.
 """
@@ -41,7 +41,7 @@ def native_solve_enabled() -> bool:
 
 
 def native_solve_applies(scene, y0, solver, controller, saveat, adjoint, meter, event, dense, slots) -> bool:
-    """Whether a solve can run as one native call (:func:`jaxbody.native.rk4_rollout`): RK4 at
+    """Whether a solve can run as one native call (:func:`jaxbody.backends.native.rk4_rollout`): RK4 at
     constant steps on a scene whose field the native programs compute (:func:`jaxbody.simulation.field.native_field`),
     saving the end state alone, without an event, dense output or progress meter, under an
     adjoint that differentiates in reverse mode."""
@@ -60,7 +60,7 @@ def native_solve_applies(scene, y0, solver, controller, saveat, adjoint, meter, 
 
 
 def _native_arguments(scene, y0, valid, slots) -> tuple:
-    """``(model, keyword arguments)`` of :func:`jaxbody.native.rk4_rollout` for a solve of ``scene``
+    """``(model, keyword arguments)`` of :func:`jaxbody.backends.native.rk4_rollout` for a solve of ``scene``
     from ``y0`` (:func:`jaxbody.simulation.field.native_field`)."""
     model, gravity, passive = native_field(scene, y0, slots)
     # a member that failed the boundary check stays frozen, as under the stepped field
@@ -89,7 +89,7 @@ def _native_outputs(y0, t1, slots, q, v, w, t, steps, failed) -> tuple:
 
 def native_solve(scene, y0, t0, t1, dt0, valid, max_steps, slots):
     """The solve of :func:`jaxbody.simulation.solve.integrate` as one native call per batch
-    (:func:`jaxbody.native.rk4_rollout`): ``(ts, ys, tf, yf, stats, result)``."""
+    (:func:`jaxbody.backends.native.rk4_rollout`): ``(ts, ys, tf, yf, stats, result)``."""
     model, kwargs = _native_arguments(scene, y0, valid, slots)
     w0 = y0[2][slots[0]] if len(y0) == 3 else 0.0
     t1 = _forward_in_time(t0, t1, dt0)
@@ -142,7 +142,7 @@ def native_or_stepped(rest, y0, native, stepped, reverse):
 
 def native_reverse(adjoint, max_steps, slots, y0):
     """``(forward, backward)`` of :func:`native_or_stepped` by the native reverse sweep
-    (:func:`jaxbody.native.rk4_rollout_vjp`): the solve keeps as many checkpoints as the
+    (:func:`jaxbody.backends.native.rk4_rollout_vjp`): the solve keeps as many checkpoints as the
     checkpointed ``adjoint`` would (default: :func:`default_checkpoints`, within its memory
     budget); ``None`` without a bounded step budget."""
     # the sweep's checkpoint memory is planned over the step budget: without one, diffrax's loop

@@ -176,7 +176,7 @@ def _switch_into(scene, t, q, v):
     """Velocities entering ``scene`` at a switch: projected onto its Maggi constraints in the
     kinetic metric (impulsive constraint). Returns ``(scene, v⁺, energy lost)``; ``scene`` is
     re-partitioned at the switch state when it chooses its independent quasi-velocities
-    automatically and the state is concrete (as :func:`jaxbody.maggi.simulate_phases`)."""
+    automatically and the state is concrete."""
     cs = scene_constraints(scene)
     if cs is None or cs.n_constraint == 0:
         return scene, v, jnp.zeros((), v.dtype)

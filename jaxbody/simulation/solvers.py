@@ -123,7 +123,7 @@ class RK4Stages(diffrax.AbstractSolver):
 
 
 def _native_rk4_step(terms, args, y0):
-    """The whole RK4 step as one native call (:func:`jaxbody.native.rk4_step`), where it computes
+    """The whole RK4 step as one native call (:func:`jaxbody.backends.native.rk4_step`), where it computes
     exactly what the four stages would: ``simulate``'s own vector field (not the augmented one of
     a backsolve adjoint) for a scene whose forward dynamics is the native kernel and whose
     effects are gravity, joint dampers and joint springs: nothing that depends on time.

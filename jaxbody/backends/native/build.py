@@ -22,7 +22,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import scalar
 from ...model import Model
 from .codegen import COMMON_TEMPLATE, generate, generate_run, generate_run_vjp, HANDLER_TEMPLATE, result_widths, SCALAR_TYPES
 

@@ -2,7 +2,7 @@
 #include <cmath>
 #include <type_traits>
 @COMMON@
-// states per block: one vector register of lanes, VECTOR_BYTES wide (jaxbody.native.BUILDS):
+// states per block: one vector register of lanes, VECTOR_BYTES wide (jaxbody.backends.native.BUILDS):
 // scalar code for a single state (a vector build would carry every value in a whole register,
 // and the long derivative programs keep most of them on the stack), 256-bit lanes for small
 // batches, 512-bit lanes (with AVX-512) for larger ones

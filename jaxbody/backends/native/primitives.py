@@ -151,10 +151,10 @@ class _ParameterModel:
 
 #: Largest number of DoFs whose derivatives the generated programs serve; above it the
 #: vectorised kernel gives the tangents. The derivative programs are about 2–2.5 times the
-#: forward one in lines; they build in about 7 s (forward and reverse mode of forward
-#: dynamics) for the Panda arm and 70 s for a 20-link chain, whose RK4 step builds in about a
-#: minute and the step's reverse- and forward-mode programs in 50 s and 66 s (once per tree,
-#: then cached; benchmarks/native_build.py, benchmarks/results/native_build_rk4_chain20.md). Taking the tangents of a 20-link chain from the
+#: forward one in lines; they build in seconds for the Panda arm, and for a 20-link chain the
+#: reverse-mode program builds in about 21 s, the RK4 step in about a minute and the step's
+#: reverse-mode program in 54 s (once per tree, then cached; `benchmarks/kernels.py build`,
+#: benchmarks/results/native_build_rk4.md). Taking the tangents of a 20-link chain from the
 #: vectorised kernel made a rollout gradient about 50 times the native rollout.
 MAX_DERIVATIVE_DOFS = 20
 
