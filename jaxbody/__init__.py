@@ -84,3 +84,45 @@ from .io.mujoco import (
 )
 
 __version__ = "0.1.0"
+
+# --- names that moved in the restructuring into one package per concept: still found at their
+# old places, with a DeprecationWarning that names the new one. They are resolved here, where
+# both old and new modules are loaded, so no module imports upwards to serve them.
+import warnings as _warnings
+
+from . import backends as _backends
+from . import simulation as _simulation
+
+_MOVED_ATTRIBUTES = {
+    kernels: {name: (_backends, name) for name in ("acceleration", "resolve_kernel", "KERNELS", "DEFAULT_KERNEL")},
+    maggi: {
+        name: (_simulation, name)
+        for name in ("PartitionSolver", "partition_solver", "partition_report", "with_best_partition")
+    },
+}
+_MOVED_MODULES = {"native": _backends.native, "unrolled": _backends.unrolled}
+
+
+def _moved(old: str, new: str, value):
+    _warnings.warn(f"{old} moved to {new}; the old name will be removed", DeprecationWarning, stacklevel=3)
+    return value
+
+
+def _module_getattr(module):
+    def __getattr__(name):
+        if name in _MOVED_ATTRIBUTES[module]:
+            target, new = _MOVED_ATTRIBUTES[module][name]
+            return _moved(f"{module.__name__}.{name}", f"{target.__name__}.{new}", getattr(target, new))
+        raise AttributeError(f"module {module.__name__!r} has no attribute {name!r}")
+
+    return __getattr__
+
+
+for _module in _MOVED_ATTRIBUTES:
+    _module.__getattr__ = _module_getattr(_module)
+
+
+def __getattr__(name):
+    if name in _MOVED_MODULES:
+        return _moved(f"jaxbody.{name}", _MOVED_MODULES[name].__name__, _MOVED_MODULES[name])
+    raise AttributeError(f"module 'jaxbody' has no attribute {name!r}")

@@ -75,8 +75,8 @@ class RK4Stages(diffrax.AbstractSolver):
     Same method, same dense output; the stage loop of a tableau solver compiles the vector
     field once, this writes it four times. :func:`simulate` uses it for ``"rk4"`` when the
     scene's forward dynamics is the unrolled kernel: XLA then fuses each stage's outputs
-    straight into the next stage's inputs, and a ``vmap`` batch of Panda arms runs about 2.4x
-    faster than through the stage loop (docs/performance.md), at about 4x the compile time.
+    straight into the next stage's inputs, which makes a ``vmap`` batch faster than the stage
+    loop at several times the compile time (the GPU rollouts of ``benchmarks/throughput.py``).
     """
 
     term_structure = diffrax.AbstractTerm
