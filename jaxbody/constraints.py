@@ -54,6 +54,8 @@ __all__ = [
 
 
 def _model(base):
+    # the model is read from the base at each call, not stored in the constraint: a scene that
+    # rebinds the base to its own model is then the one evaluated and differentiated
     model = getattr(base, "model", None)
     if model is None:
         raise ValueError(
@@ -66,6 +68,8 @@ def _body(model, body) -> int:
     if isinstance(body, str):
         return model.body_index(body)
     body = int(body)
+    # checked at build time: -1 means the world, and any other negative index would silently
+    # pick a body counted from the end
     if not -1 <= body < model.n_body:
         raise ValueError(f"body index {body} out of range for a model with {model.n_body} bodies")
     return body
@@ -73,6 +77,7 @@ def _body(model, body) -> int:
 
 def _vec(v, n=3, what="vector"):
     v = jnp.asarray(v)
+    # integer input such as (0, 0, 1) is promoted so that the field can carry gradients
     if not jnp.issubdtype(v.dtype, jnp.inexact):
         v = v.astype(jnp.result_type(float))
     if v.shape != (n,):
@@ -113,6 +118,8 @@ def body_point_velocity(model, q, v, body: int, point) -> Float[Array, " 3"]:
     """World velocity of a point fixed in ``body`` (``d/dt`` of :func:`body_point` along ``q̇ = qpos_rate(q, v)``)."""
     if body < 0:
         return jnp.zeros((3,), jnp.asarray(v).dtype)
+    # v holds quasi-velocities (a ball joint's angular velocity, not quaternion rates): the
+    # point's velocity is the derivative along q̇ = qpos_rate(q, v), so the rows are linear in v
     return jax.jvp(lambda qq: body_point(model, qq, body, point), (q,), (qpos_rate(model, q, v),))[1]
 
 
@@ -147,6 +154,8 @@ class _PointOffset(Constraint):
 
     def __init__(self, model, body, point, directions, origin, label, on):
         self.body, self.point, self.origin, self.label = _point_fields(model, body, point, origin, label, on)
+        # directions are array leaves, not static: a plane's normal or a line's direction can be
+        # fitted like any other parameter
         self.directions = jnp.asarray(directions, self.point.dtype)
 
     @property
@@ -154,6 +163,8 @@ class _PointOffset(Constraint):
         return int(self.directions.shape[0])
 
     def position(self, base, t, q):
+        # fixed world directions, so dφ/dt = D·ṗ exactly: the velocity rows below are the time
+        # derivative of these, as the Baumgarte term ω²φ + 2ωf* requires
         return self.directions @ (body_point(_model(base), q, self.body, self.point) - self.origin)
 
     def velocity(self, base, t, q, x):
@@ -179,9 +190,11 @@ class PointOnPlane(_PointOffset):
 def _normals(direction):
     d = np.asarray(direction, dtype=np.float64)
     d = d / np.linalg.norm(d)
+    # the world axis least aligned with d keeps the cross product far from zero
     a = np.eye(3)[np.argmin(np.abs(d))]
     n1 = np.cross(d, a)
     n1 /= np.linalg.norm(n1)
+    # orthonormal and both orthogonal to d: two independent rows, never redundant
     return np.stack([n1, np.cross(d, n1)])
 
 
@@ -220,6 +233,8 @@ class LoopClosure(Constraint):
         self.point_a = _vec(point_a, what="point_a")
         self.point_b = _vec(point_b, what="point_b")
         ax = np.eye(3) if axes is None else np.asarray(axes, dtype=np.float64).reshape(-1, 3)
+        # unit axes, so that each reaction is a force along its axis (a row scaled by k would
+        # report its reaction divided by k)
         ax = ax / np.linalg.norm(ax, axis=1, keepdims=True)
         self.axes = jnp.asarray(ax, self.point_a.dtype)
         name = lambda b: "world" if b < 0 else model.body_names[b]
@@ -261,6 +276,8 @@ def _angular_velocity(R, Rd):
 
 def _unit_or_zero(u):
     """``u / |u|`` with a gradient-safe norm (zero stays zero)."""
+    # the floor keeps value and gradient finite at u = 0, where the gradient of
+    # jnp.linalg.norm is NaN (0/0)
     return u / jnp.sqrt(jnp.maximum(u @ u, jnp.finfo(u.dtype).tiny))
 
 
@@ -277,6 +294,8 @@ def _wheel_contact_in(R, x, centre, axis, radius, normal):
     a = R @ axis
     # gradient-safe normalisation (a wheel lying flat has no single contact point)
     s = _unit_or_zero(normal - (normal @ a) * a)
+    # s is the unit vector in the wheel's plane closest to the plane normal: the lowest point
+    # of the rim lies one radius from the centre against it
     return c, c - radius * s
 
 
@@ -301,6 +320,8 @@ class PlaneContact(_OneRow):
 
     def velocity(self, base, t, q, x):
         m = _model(base)
+        # the exact time derivative of φ along q̇: f* = dφ/dt by construction, so the position
+        # and velocity residuals of this row stay consistent under stabilisation
         return jax.jvp(lambda qq: self.position(base, t, qq), (q,), (qpos_rate(m, q, x),))[1]
 
 
@@ -331,6 +352,8 @@ class RollingContact(Constraint):
         return self._tangents_in(forward_kinematics(model, q).body_rotation[self.body])
 
     def _tangents_in(self, R):
+        # t₁ along the heading (axis × normal), t₂ across it; a wheel lying flat has no heading,
+        # and the gradient-safe normalisation keeps that state finite
         t1 = _unit_or_zero(jnp.cross(R @ self.axis, self.normal))
         return jnp.stack([t1, jnp.cross(self.normal, t1)])
 
@@ -338,6 +361,8 @@ class RollingContact(Constraint):
         # the wheel's frame and its rate from one differentiated evaluation of the frames
         R, o, Rd, od = _body_frame_rate(_model(base), q, x, self.body)
         c, d = _wheel_contact_in(R, o, self.centre, self.axis, self.radius, self.normal)
+        # the velocity of the material point at the contact (centre velocity plus ω × (d − c)):
+        # the geometric contact point slides along the rim, so its own velocity is not constrained
         vc = od + Rd @ self.centre
         return self._tangents_in(R) @ (vc + jnp.cross(_angular_velocity(R, Rd), d - c))
 
@@ -369,6 +394,7 @@ class KnifeEdge(_OneRow):
 
     def velocity(self, base, t, q, x):
         R, _, Rd, od = _body_frame_rate(_model(base), q, x, self.body)
+        # only the in-plane direction across the edge is constrained: the skate moves freely along it
         lateral = _unit_or_zero(jnp.cross(self.normal, R @ self.edge))
         return (lateral @ (od + Rd @ self.point))[None]
 
@@ -391,6 +417,8 @@ class PrescribedCoordinate(_OneRow):
         j = model.joint_index(joint) if isinstance(joint, str) else int(joint)
         if model.joints.type[j] not in (HINGE, SLIDE):
             raise ValueError(f"PrescribedCoordinate: joint {model.joint_names[j]!r} is not a hinge or slide")
+        # a hinge or slide has one coordinate and one velocity with v_j = q̇_j, so φ = q_j − g(t)
+        # and f* = v_j − ġ(t) match (a ball joint's quaternion would not)
         self.qpos, self.dof = model.joints.qposadr[j], model.joints.dofadr[j]
         self.motion, self.params = motion, params
         self.label = f"prescribed {model.joint_names[j]!r}"
@@ -400,6 +428,8 @@ class PrescribedCoordinate(_OneRow):
 
     def velocity(self, base, t, q, x):
         t = jnp.asarray(t, jnp.asarray(x).dtype)
+        # ġ by forward-mode differentiation of the user's motion: f* stays affine in v, with the
+        # prescribed rate as its affine part
         rate = jax.jvp(lambda tt: self.motion(tt, self.params), (t,), (jnp.ones_like(t),))[1]
         return (x[self.dof] - rate)[None]
 
@@ -422,6 +452,8 @@ def loop_closures(model, *, axes="auto") -> tuple[LoopClosure, ...]:
     out = []
     for spec in model.loops:
         if isinstance(axes, str) and axes == "auto":
+            # axes stored by the importer first: finding them samples the model numerically, which
+            # cannot be done when its parameters are traced
             ax = spec.axes if spec.axes is not None else independent_loop_axes(model, spec)
         else:
             ax = axes

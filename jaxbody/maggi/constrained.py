@@ -77,6 +77,8 @@ class ConstrainedSystem(eqx.Module):
 
     base: Any
     constraints: tuple
+    # ``free`` is a traced leaf, so the partition solver swaps it between steps without recompiling;
+    # ``epsilon`` and ``repartitioning`` are static: they decide what is traced (a function, a branch).
     epsilon: Callable | None = eqx.field(static=True)
     free: Array = eqx.field(converter=lambda f: jnp.asarray(f, dtype=jnp.int32))
     baumgarte: Array
@@ -122,6 +124,8 @@ class ConstrainedSystem(eqx.Module):
         q = jnp.asarray(q)
         for c in self.constraints:
             p = c.position(self.base, t, q)
+            # zeros on non-holonomic rows keep φ aligned with f* row by row: the Baumgarte term ω²φ
+            # (M.13) then acts on the holonomic rows only
             parts.append(jnp.zeros((c.size,), q.dtype) if p is None else p)
         return jnp.concatenate(parts) if parts else jnp.zeros((0,), q.dtype)
 
@@ -133,6 +137,7 @@ class ConstrainedSystem(eqx.Module):
         """``ε(t, q, x)`` (n − s,)."""
         if self.epsilon is not None:
             return jnp.reshape(self.epsilon(self.base, t, q, x), (self.nv - self.n_constraint,))
+        # ε = x[free] written as E·x: linear in x with ∂ε/∂x = E exactly, as parametrisation assumes
         return self.selection(x) @ jnp.asarray(x)
 
     def selection(self, x) -> Array:
@@ -148,7 +153,11 @@ class ConstrainedSystem(eqx.Module):
         else:
             E = jax.jacfwd(lambda xx: self.characteristics(t, q, xx))(x)
         G = self.constraint_jacobian(t, q, x)
+        # [E; G] is square; the first n − s columns of its inverse are A = ∂x/∂ε, the last s are
+        # K = ∂x/∂f*, so that GA = 0, GK = I, EA = I, EK = 0 (M.8)
         J = jnp.concatenate([E, G], axis=0) if s else E
+        # Gauss–Jordan with partial pivoting rather than LAPACK: batched LAPACK calls are unsafe
+        # under vmap on CPU, and its pivot ratio is the singularity test of M.9
         AK, ratio = solve_general(J, jnp.eye(n, dtype=J.dtype))
         return AK[:, : n - s], AK[:, n - s :], ratio
 
@@ -168,6 +177,7 @@ class ConstrainedSystem(eqx.Module):
         stays valid, so a sign change means the motion crossed a singular state.
         """
         if not self.partitioned:
+            # no partition to degrade: the best quality, so the partition solver never re-chooses
             return jnp.ones((), jnp.asarray(x).dtype)
         return selection_quality(self.selection(x), self.constraint_jacobian(t, q, x))
 
@@ -187,6 +197,8 @@ class ConstrainedSystem(eqx.Module):
         outputs that do not depend on the partition (the reactions along a solution)."""
         if not self.partitioned:
             return self
+        # the choice of columns is discrete (an argmax) and the outputs do not depend on it: no
+        # derivative should flow through it
         return self.with_partition(lax.stop_gradient(self.best_partition(t, lax.stop_gradient(q), lax.stop_gradient(x))))
 
     def solve(self, t, q, x, tau=None, *, stabilise=False) -> MaggiSolution:
@@ -215,29 +227,39 @@ class ConstrainedSystem(eqx.Module):
         A, K, ratio = self.parametrisation(t, q, x)
         if s:
             qd = self.base.qdot(q, x)
+            # γ = ∂f*/∂q·q̇ + ∂f*/∂t at fixed x (M.6): one forward-mode product, ∂f*/∂q never formed
             f_dot0 = jax.jvp(
                 lambda tt, qq: self.constraint_residual(tt, qq, x),
                 (t, q),
                 (jnp.ones_like(t), qd),
             )[1]
             gamma = f_dot0
+            # Baumgarte (M.13): residuals obey φ̈ + 2ωφ̇ + ω²φ = 0; exact solutions (φ = f* = 0) are unchanged
             if stabilise:
                 w = self.baumgarte
                 gamma = gamma + 2.0 * w * self.constraint_residual(t, q, x) + w**2 * self.position_residual(t, q)
+            # any ẋ = Aα − Kγ satisfies Gẋ + γ = 0 (GA = 0, GK = I); Maggi's equations Aᵀ𝓔 = 0 fix α:
+            # (AᵀDA)α = −Aᵀ(h − DKγ) (M.11)
             rhs = -(A.T @ (h + D @ (K @ (-gamma))))
             S = A.T @ D @ A
+            # AᵀDA is positive definite when D is and A has full column rank, so Cholesky suffices;
+            # it returns NaN instead of raising, which becomes singular_reduced_mass below
             alpha = linalg.solve_spd(S, rhs) if n - s else jnp.zeros((0,), D.dtype)
             xdot = A @ alpha - K @ gamma
         else:
             S = D
             xdot = linalg.solve_spd(D, -h)
         bracket = D @ xdot + h
+        # Λ = Kᵀ𝓔 (M.12): 𝓔 is orthogonal to the columns of A, so 𝓔 = GᵀΛ and Λ are the
+        # multipliers of the rows of f* as written
         reactions = K.T @ bracket
         eps_dot = jax.jvp(
             lambda tt, qq, xx: self.characteristics(tt, qq, xx),
             (t, q, x),
             (jnp.ones_like(t), self.base.qdot(q, x), xdot),
         )[1]
+        # result codes, not exceptions: inside a solver loop under vmap raising would stop the whole
+        # batch; the negated test also flags a NaN ratio; a non-finite ẋ blames AᵀDA only if [E; G] was regular
         bad_param = ~(ratio > SINGULAR_PIVOT)
         bad_mass = ~jnp.all(jnp.isfinite(xdot)) & ~bad_param
         result = MaggiResult.where(bad_param, MaggiResult.singular_parametrisation, MaggiResult.successful)
@@ -306,7 +328,9 @@ def selection_quality(E, G) -> Array:
     J = jnp.concatenate([E, G], axis=0)
     _, ratio, sign, logdet = gauss_jordan(J, jnp.zeros((J.shape[0], 0), J.dtype))
     _, _, _, loggram = gauss_jordan(G @ G.T, jnp.zeros((G.shape[0], 0), J.dtype))
+    # log-determinants do not overflow; the minimum clips round-off above the bound |c| ≤ 1 (M.9a)
     quality = sign * jnp.exp(jnp.minimum(logdet - 0.5 * loggram, 0.0))
+    # singular [E; G]: 0, which the partition solver reads as lost rank for the best partition
     return jnp.where(ratio > SINGULAR_PIVOT, quality, 0.0)
 
 
@@ -318,17 +342,22 @@ def pivoted_free(G) -> Array:
     s, n = G.shape
     if s == 0:
         return jnp.arange(n, dtype=jnp.int32)
+    # only which columns become pivots matters, so the factors are never kept; a Gram–Schmidt
+    # sweep in array operations runs under vmap, where batched LAPACK is unsafe on CPU
     tiny = jnp.finfo(G.dtype).tiny
 
     def step(_, carry):
         R, chosen = carry
+        # chosen columns masked: the largest remaining norm gives the best-conditioned dependent block
         norms = jnp.where(chosen, -1.0, jnp.sum(R * R, axis=0))
         j = jnp.argmax(norms)
+        # tiny keeps a zero column (G rank-deficient) finite; the quality test detects lost rank
         u = R[:, j] / jnp.sqrt(jnp.maximum(norms[j], tiny))
         R = R - u[:, None] * (u @ R)[None, :]
         return R, chosen.at[j].set(True)
 
     _, chosen = lax.fori_loop(0, s, step, (G, jnp.zeros((n,), bool)))
+    # a stable sort of the 0/1 mask lists the free columns first, ascending, with a static size
     return jnp.argsort(chosen.astype(jnp.int32), stable=True)[: n - s].astype(jnp.int32)
 
 
@@ -338,6 +367,7 @@ def _partition(system, t, q, x) -> tuple[int, ...]:
     if s == 0:
         return tuple(range(n))
     q = jnp.asarray(q)
+    # integer reference coordinates would make G integer: the choice is made in floating point
     dtype = q.dtype if jnp.issubdtype(q.dtype, jnp.inexact) else jnp.result_type(float)
     t, q, x = jnp.asarray(t, dtype), q.astype(dtype), jnp.asarray(x, dtype)
     return tuple(int(i) for i in np.asarray(_best_free_jit(system, t, q, x)))

@@ -26,9 +26,12 @@ class Constraint(eqx.Module):
     Baumgarte stabilisation and :func:`project_positions`; non-holonomic ones return ``None``.
     """
 
+    # the base system is passed in, not stored: a scene rebinds the constraints to its own model,
+    # whose parameters are then the ones evaluated and differentiated
     def velocity(self, base, t, q, x) -> Array:
         raise NotImplementedError
 
+    # None marks a non-holonomic constraint: no φ for the ω²φ term or for position projection
     def position(self, base, t, q) -> Array | None:
         return None
 
@@ -41,6 +44,8 @@ class Constraint(eqx.Module):
         return tuple(f"{type(self).__name__}[{i}]" for i in range(self.size))
 
     @property
+    # affine rows make one kinetic-metric projection exact (initial states, switches);
+    # nonlinear rows are projected by a few Newton iterations
     def linear(self) -> bool:
         return True
 
@@ -54,6 +59,8 @@ class VelocityConstraint(Constraint):
     ``fn(base, t, q, x, params)`` when ``params`` is not ``None``.
     """
 
+    # functions are static (hashed into the compiled program); anything to differentiate must be
+    # an array leaf, hence ``params``
     fn: Callable = eqx.field(static=True)
     n_rows: int = eqx.field(static=True)
     label: str = eqx.field(static=True, default="constraint")
@@ -69,6 +76,7 @@ class VelocityConstraint(Constraint):
         return f(*args) if self.params is None else f(*args, self.params)
 
     def velocity(self, base, t, q, x):
+        # to the declared row count: a scalar fits, a wrong size fails at trace time
         return jnp.reshape(self._call(self.fn, base, t, q, x), (self.n_rows,))
 
     def position(self, base, t, q):

@@ -33,12 +33,17 @@ def check_constraints(system: ConstrainedSystem, q, x=None, t=0.0, *, rtol: floa
     if s > n:
         raise ValueError(f"{s} constraints on {n} quasi-velocities: at least {s - n} are redundant")
     x = jnp.zeros((n,), jnp.asarray(q).dtype) if x is None else jnp.asarray(x)
+    # a build-time check on the host, once and outside any trace: LAPACK's SVD in float64 is
+    # safe here and gives the sharpest rank test
     G = np.asarray(system.constraint_jacobian(t, q, x), dtype=np.float64)
     # affine part at x = 0 for linear constraints: f* = G x + c
     c = np.asarray(system.constraint_residual(t, q, x), dtype=np.float64) - G @ np.asarray(x)
     names = system.constraint_names
+    # rank tolerance relative to G's largest entry, so the rows' units do not matter; the
+    # floor keeps an all-zero G comparable
     scale = max(np.abs(G).max(), 1e-300)
     kept: list[int] = []
+    # rows are added one at a time, so the first row that depends on earlier ones is the one named
     for i in range(s):
         trial = G[kept + [i]]
         sv = np.linalg.svd(trial, compute_uv=False)
@@ -47,6 +52,8 @@ def check_constraints(system: ConstrainedSystem, q, x=None, t=0.0, *, rtol: floa
             coef, *_ = np.linalg.lstsq(G[kept].T, G[i], rcond=None) if kept else (np.zeros(0),)
             mismatch = abs(c[i] - (coef @ c[kept] if kept else 0.0))
             deps = [names[j] for j, a in zip(kept, coef) if abs(a) > 1e-9] if kept else []
+            # a dependent row whose affine part follows the same combination repeats a constraint
+            # (redundant); otherwise no velocity satisfies both (inconsistent)
             what = "inconsistent" if mismatch > 1e-9 * max(1.0, np.abs(c).max()) else "redundant"
             raise ValueError(
                 f"constraints are {what}: row {names[i]!r} depends on "
@@ -92,6 +99,8 @@ def constrain(
     """
     if isinstance(base, Model):
         base = ModelBase(base)
+    # a constrained system has no bracket of its own to serve as a base: its rows join the new
+    # ones on the original base, since Maggi's equations need all rows in one G
     if isinstance(base, ConstrainedSystem):
         constraints = tuple(base.constraints) + tuple(constraints)
         base = base.base
@@ -106,6 +115,7 @@ def constrain(
     tol = float(partition_tolerance)
     if not 0.0 < tol < 1.0:
         raise ValueError(f"constrain: partition_tolerance must lie in (0, 1), got {partition_tolerance!r}")
+    # ``free`` is a placeholder until the partition is chosen below; G and f* do not read it
     system = ConstrainedSystem(
         base=base, constraints=constraints, epsilon=epsilon, free=tuple(range(base.nv)),
         baumgarte=jnp.asarray(baumgarte, dtype), repartitioning=bool(repartition), partition_tolerance=tol,
@@ -140,6 +150,8 @@ def project_velocities(system: ConstrainedSystem, q, x, t=0.0, *, iterations: in
     """
     if system.n_constraint == 0:
         return jnp.asarray(x)
+    # D depends on q only, so it is formed once; each step is the smallest correction in
+    # kinetic energy, x − D⁻¹Gᵀ(GD⁻¹Gᵀ)⁻¹f*
     D = system.kinetic_metric(t, q, x)
 
     def step(_, xx):
@@ -149,6 +161,8 @@ def project_velocities(system: ConstrainedSystem, q, x, t=0.0, *, iterations: in
         lam = linalg.solve_spd(G @ DiGt, f)
         return xx - DiGt @ lam
 
+    # a fixed iteration count, not a convergence test: it traces once, batches and
+    # differentiates; for affine rows one step is exact
     return lax.fori_loop(0, 1 if all(c.linear for c in system.constraints) else iterations, step, jnp.asarray(x))
 
 
@@ -160,6 +174,8 @@ def project_positions(system: ConstrainedSystem, q, t=0.0, *, iterations: int = 
     q = jnp.asarray(q)
     if not rows:
         return q
+    # only holonomic rows have a φ; with independent rows J has full row rank and JJᵀ is
+    # positive definite, as the Cholesky solve needs
     idx = jnp.asarray(rows, dtype=jnp.int32)
     phi = lambda qq: system.position_residual(t, qq)[idx]
 
@@ -174,6 +190,8 @@ def project_positions(system: ConstrainedSystem, q, t=0.0, *, iterations: int = 
 
 def _holonomic_mask(system: ConstrainedSystem) -> list[bool]:
     mask = []
+    # whether a row is holonomic is structural (position() gives None or not), so one probe
+    # state answers it in Python
     q = jnp.zeros((system.nq,))
     for c in system.constraints:
         try:
@@ -203,6 +221,7 @@ def initial_state(system: ConstrainedSystem, q, x, t=0.0, *, project_initial: bo
     q = jnp.asarray(q)
     x = jnp.asarray(x, q.dtype)
     f = np.asarray(system.constraint_residual(t, q, x))
+    # tolerance relative to the speed (floored at 1), so fast and slow states are judged alike
     scale = max(1.0, float(np.max(np.abs(np.asarray(x)))) if x.size else 1.0)
     bad = [system.constraint_names[i] for i in np.flatnonzero(np.abs(f) > atol * scale)]
     if not bad:

@@ -31,6 +31,8 @@ def constraint_residuals(system: ConstrainedSystem, t, q, x) -> tuple[Array, Arr
 
 @eqx.filter_jit
 def _residuals(system, t, q, x):
+    # on the states as integrated, nothing projected first: these measure the drift that the
+    # Baumgarte terms keep bounded
     pos = jax.vmap(system.position_residual)(t, q)
     vel = jax.vmap(system.constraint_residual)(t, q, x)
     return pos, vel

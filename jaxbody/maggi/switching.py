@@ -50,16 +50,23 @@ def switch_constraints(new: ConstrainedSystem, t, q, x_before) -> SwitchReport:
 
 @eqx.filter_jit
 def _switch(new, t, q, x_before):
+    # the impulse is instantaneous: q does not move, so D, A and K are all taken at the switch
+    # state with the velocity before it
     D = new.kinetic_metric(t, q, x_before)
     if new.n_constraint == 0:
         x_after = x_before
         K = jnp.zeros((new.nv, 0), D.dtype)
     else:
         A, K, _ = new.parametrisation(t, q, x_before)
+        # affine part c = f*(t, q, 0) of linear rows (f* = Gx + c): the shift −Kc meets Gx⁺ + c = 0
         c = new.constraint_residual(t, q, jnp.zeros_like(x_before))
         target = x_before + K @ c
+        # D-orthogonal projection onto the admissible velocities: the impulse D(x⁺ − x⁻) = GᵀΠ lies
+        # in the span of Gᵀ and is eliminated with AᵀGᵀ = 0 (M.14)
         alpha = linalg.solve_spd(A.T @ D @ A, A.T @ (D @ target))
         x_after = A @ alpha - K @ c
+        # M.14 treats the rows as affine (G taken at x⁻, c at x = 0); for nonlinear rows Newton
+        # steps of the kinetic-metric projection finish the job
         if not all(cn.linear for cn in new.constraints):
             x_after = project_velocities(new, q, x_after, t)
     dx = x_after - x_before
@@ -68,6 +75,7 @@ def _switch(new, t, q, x_before):
         t=jnp.asarray(t, D.dtype),
         x_before=x_before,
         x_after=x_after,
+        # GK = I recovers each row's impulse Π from the generalized impulse GᵀΠ
         impulse=K.T @ P,
         generalized_impulse=P,
         energy_lost=0.5 * dx @ D @ dx,

@@ -35,6 +35,8 @@ class MaggiResult(eqx.Enumeration):
     )
 
 
+# relative to the largest entry, so independent of units; about five orders of magnitude
+# above double-precision round-off, so only genuinely dependent rows fall below it
 #: relative pivot below which the parametrisation counts as singular
 SINGULAR_PIVOT = 1e-11
 
@@ -73,6 +75,7 @@ class QuasiVelocitySystem(eqx.Module):
     def bracket_terms(self, t, q, x, tau=None) -> tuple[Array, Array]:
         """``(D, h)`` with ``𝓔 = D·ẋ + h`` (M.4); ``tau`` = applied forces ``Q*``."""
         qd = self.qdot(q, x)
+        # H = ∂π/∂x maps variations of x to δq̇ = H·δx (M.2); D = Hᵀ·∂²T/∂q̇²·H is the metric of T*
         H = jax.jacfwd(lambda xx: self.qdot(q, xx))(x)
         p = lambda qq, vv: jax.grad(self.kinetic_energy_rates, argnums=1)(qq, vv)
         Mq = jax.jacfwd(p, argnums=1)(q, qd)
@@ -86,6 +89,8 @@ class QuasiVelocitySystem(eqx.Module):
         h = H.T @ lagrange0
         if tau is not None:
             h = h - tau
+        # an autodiff Hessian is symmetric only up to round-off, and the Cholesky solves read one
+        # triangle: made exactly symmetric so that every reader sees the same metric
         return 0.5 * (D + D.T), h
 
 
@@ -113,6 +118,7 @@ class ModelBase(eqx.Module):
         # the unchecked kernels on one state pytree: nothing raises inside a solver loop
         data = compute_data(self.model, q, x)
         D = mass_matrix(self.model, data)
+        # the joint-space equation M·v̇ + bias = passive + τ written as the bracket 𝓔 = 0
         h = bias_forces(self.model, data) - passive_forces(self.model, data)
         if tau is not None:
             h = h - tau

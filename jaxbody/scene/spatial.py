@@ -75,9 +75,13 @@ class SpatialScene(ModelScene):
         ctx = self.context(t, q, v)
         total, powers = self.effect_forces(ctx, tau)
         M = mass_matrix(self.system, ctx.kinematics)
+        # gravity is one of the scene's effects and already in ``total``: the tree's own gravity
+        # would count it twice
         bias = bias_forces(self.system, ctx.kinematics, gravity=False)
         if self.constraints is None:
             return solve_spd(M, total - bias), tuple(powers), None
+        # the constraint set receives D = M and the force side, solves Maggi's reduced system and
+        # returns Λ: one constrained path for every entry point
         a, reaction = self.constraints.accelerations(ctx, M, total - bias)
         return a, tuple(powers), reaction
 
@@ -99,6 +103,8 @@ class SpatialScene(ModelScene):
             total = tau if total is None else total + tau
             if "actuation" in self.work_names:
                 i = self.work_names.index("actuation")
+                # the run-time control input's power joins the actuation effect's work, so the energy
+                # balance closes with the tau actually applied
                 powers[i] = powers[i] + jnp.dot(tau, v)
         a = acceleration(self.system, q, v, total, gravity=gravity, kernel=self.kernel)
         return a, tuple(powers), None
@@ -111,6 +117,8 @@ class SpatialScene(ModelScene):
         kernel = resolve_kernel(self.system, self.kernel)
         conservative = [e for e in self.effects if e.conservative]
         springs = [e for e in conservative if isinstance(e, JointSprings)]
+        # these straight-line energies cover gravity and at most one set of joint springs; any
+        # other conservative effect needs the general kinematics
         if kernel not in ("native", "unrolled") or len(springs) > 1:
             return None
         if not all(isinstance(e, (Gravity, JointSprings)) for e in conservative):

@@ -19,12 +19,16 @@ class DelegatingSolver(diffrax.AbstractAdaptiveSolver, diffrax.AbstractWrappedSo
     """
 
     solver: diffrax.AbstractSolver
+    # a field because diffrax writes it on the outermost solver with tree_at; it reaches the
+    # solver that runs the stages through :attr:`inner`
     scan_kind: str | None = eqx.field(default=None, kw_only=True)
 
     @property
     def inner(self) -> diffrax.AbstractSolver:
         """The wrapped solver, with the ``scan_kind`` diffrax asked for."""
         if self.scan_kind is not None and hasattr(self.solver, "scan_kind"):
+            # is_leaf for None: None is an empty pytree, so tree_at could not otherwise replace an
+            # unset field
             return eqx.tree_at(lambda s: s.scan_kind, self.solver, self.scan_kind, is_leaf=lambda x: x is None)
         return self.solver
 
@@ -49,6 +53,8 @@ class DelegatingSolver(diffrax.AbstractAdaptiveSolver, diffrax.AbstractWrappedSo
     def error_order(self, terms):
         return self.solver.error_order(terms) if hasattr(self.solver, "error_order") else self.order(terms)
 
+    # the identity wrapper: calls go through :attr:`inner`, so the stage loop diffrax chose
+    # is the one that runs
     def init(self, terms, t0, t1, y0, args):
         return self.inner.init(terms, t0, t1, y0, args)
 
@@ -69,6 +75,7 @@ def for_adjoint(solver, adjoint, max_steps):
     handed down from the outermost one; a ``scan_kind`` already set is kept.
     """
     inner = solver
+    # only the innermost solver has a stage loop to choose
     while issubclass(type(inner), DelegatingSolver):
         inner = inner.solver
     if not issubclass(type(solver), DelegatingSolver) or not issubclass(

@@ -27,6 +27,8 @@ def _constrained_of(args, partitioned_only=True):
     obj = args[0] if isinstance(args, tuple) and args else args
     if isinstance(obj, Scene):
         cs = obj.constraints
+        # bound to the scene's model, so the checks evaluate the parameters being solved and
+        # differentiated, not the copy taken when the constraints were built
         cs = cs.on_model(obj.system) if isinstance(cs, ConstrainedSystem) else None
     else:
         cs = obj if isinstance(obj, ConstrainedSystem) else None
@@ -51,18 +53,24 @@ def with_best_partition(obj, t, q, x):
     cs = _constrained_of(obj)
     if cs is None:
         return obj
+    # a discrete choice that the outputs do not depend on: no derivative flows through it
     return _set_partition(obj, lax.stop_gradient(cs.best_partition(t, lax.stop_gradient(q), lax.stop_gradient(x))))
 
 
 def _partition_check(cs, t, q, x, sign):
     """``(degraded, quality, best, best_quality)`` of the current partition of ``cs`` at a state;
     ``sign`` is the sign of the quality when last checked (``0``: unknown)."""
+    # the check only decides which partition to use and ẋ does not depend on it: no
+    # derivative of the solution passes here, and none is traced through the QR sweep
     t, q, x = lax.stop_gradient((t, q, x))
     G = cs.constraint_jacobian(t, q, x)
     best = pivoted_free(G)
     c = selection_quality(cs.selection(x), G)
     cb = selection_quality(cs.with_partition(best).selection(x), G)
     flipped = (sign != 0) & (jnp.sign(c) != sign)
+    # relative to the best partition here, so the tolerance does not depend on how well G is
+    # conditioned at this state; a sign change means the step crossed a singular state even if
+    # |c| has recovered by its end, and a NaN quality counts as degraded
     degraded = (jnp.abs(c) < cs.partition_tolerance * jnp.abs(cb)) | flipped | ~jnp.isfinite(c)
     return degraded, c, best, cb
 
@@ -147,6 +155,7 @@ class PartitionSolver(DelegatingSolver):
             result = diffrax.RESULTS.where((bad > 0) & ok(result), diffrax.RESULTS.singular, result)
             return y1, err, dense, (inner, free, sign, count, times, bad), result
         dtype = sign.dtype
+        # back to integers for this step only; the carried copies stay floats (see init)
         free, count = free.astype(jnp.int32), count.astype(jnp.int32)
         args = _set_partition(args, free)
         y1, err, dense, inner, result = self.inner.step(terms, t0, t1, y0, args, inner, made_jump)
@@ -156,14 +165,19 @@ class PartitionSolver(DelegatingSolver):
         bad = jnp.where((bad == _OK) & (cb == 0), _SINGULAR, bad).astype(dtype)
         if self.repartition:
             changed = degraded & jnp.any(best != free)
+            # a fixed number of slots, since shapes are static inside the loop: the first changes are
+            # recorded, the count goes on
             slot = jnp.minimum(count, MAX_RECORDED_REPARTITIONS - 1)
             times = jnp.where(changed & (count < MAX_RECORDED_REPARTITIONS), times.at[slot].set(t1), times)
             count = count + changed.astype(jnp.int32)
+            # only the partition changes, never y1: ẋ does not depend on it, so the accepted step stands
             free = jnp.where(degraded, best, free)
             sign = jnp.sign(jnp.where(degraded, cb, c))
         else:
             bad = jnp.where((bad == _OK) & degraded, _DEGRADED, bad).astype(dtype)
             sign = jnp.sign(c)
+        # a failed result, not an exception: inside diffrax's loop that is what stops one member of
+        # a batch alone; partition_report tells the cause apart from the carried flag
         result = diffrax.RESULTS.where((bad > 0) & ok(result), diffrax.RESULTS.singular, result)
         return y1, err, dense, (inner, free.astype(dtype), sign, count.astype(dtype), times, bad), result
 

@@ -135,7 +135,10 @@ class Solution(eqx.Module):
     t_final: Float[Array, ""]
     q_final: Float[Array, " nq"]
     v_final: Float[Array, " nv"]
+    # static: names and addresses are Python strings and ints shared by every member of a
+    # batch; as leaves they would be traced or batched
     layout: tuple = eqx.field(static=True, default=())
+    # diffrax's dense output (dense=True only): a pytree, so it batches like the arrays
     interpolation: Any = None
     repartition_times: Any = None
     energy0: Float[Array, ""] | None = None
@@ -151,6 +154,7 @@ class Solution(eqx.Module):
     @property
     def success(self) -> jax.Array:
         """Boolean array: the solve reached ``t1`` or a terminating event (per member when batched)."""
+        # a terminating event is a success: the solve stopped where it was asked to
         return (self.result == RESULTS.successful) | (self.result == RESULTS.event_occurred)
 
     @property
@@ -211,6 +215,7 @@ class Solution(eqx.Module):
             arrays["reactions"] = np.asarray(self.reactions)
         if self.repartition_times is not None:
             arrays["repartition_times"] = np.asarray(self.repartition_times)
+        # through a file handle, so that np.savez does not append .npz to the path given
         with open(path, "wb") as fh:
             np.savez(fh, **arrays)
 
@@ -244,6 +249,7 @@ class Solution(eqx.Module):
         for k, w in self.work.items():
             cols.append(np.asarray(w)[:, None])
             names.append(f"work_{k}")
+        # comments="": the header is a plain first line of column names, as CSV readers expect
         np.savetxt(path, np.concatenate(cols, axis=1), delimiter=",", header=",".join(names), comments="")
 
 
@@ -296,6 +302,8 @@ def energy_balance(energy, work, energy0=None, work0=None):
     from an older file) the first saved time stands for ``t0``."""
     e0 = energy[..., :1] if energy0 is None else energy0[..., None]
     out = energy - e0
+    # work entries are cumulative; their value at t0 (zero by default, work0 when given, the first
+    # saved value when E(t0) is unknown) is subtracted so that only the work done since t0 enters
     for i, w in enumerate(work.values()):
         if energy0 is None:
             out = out - (w - w[..., :1])
