@@ -197,10 +197,6 @@ def test_constrained_system_and_phase_runner_repartition(scene_run):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, raises=KeyError,
-                   reason="jb.simulate(jb.Phases(...)) does not report the re-partitions inside its phases "
-                          "(stats['num_repartitions'], repartition_times), which the removed "
-                          "maggi.simulate_phases did")
 def test_phase_runner_reports_its_repartitions(scene_run):
     ph = jb.simulate(single_phase(pendulum()), Q0, jnp.array([W0 * L, 0.0]), T1, **KW)
     assert int(ph.stats["num_repartitions"]) == int(scene_run.stats["num_repartitions"])

@@ -14,6 +14,7 @@ from .. import maggi
 from ..scene import Phases
 from .._util import is_concrete
 from .checks import scene_constraints
+from .partitioning import MAX_RECORDED_REPARTITIONS
 from .solution import RESULTS, Solution, balance_scale, energy_balance
 from .solve import simulate_scene
 
@@ -41,7 +42,13 @@ def simulate_phases(phases: Phases, q0, v0, t1, *, t0, saveat, n_save, track_wor
       ``"switch_occurred"``, ``"switch_energy_jump"`` ``E⁺ − E⁻`` (an impulsive constraint
       loses energy; a phase with other conservative effects measures energy differently) and
       ``"switch_energy_lost"`` ``½(x⁻ − x⁺)ᵀD(x⁻ − x⁺) ≥ 0`` of the velocity projection (zero
-      when there is none);
+      when there is none); ``"num_repartitions"``, the coordinate re-partitions made inside
+      the phases (the choice made at a switch is not counted);
+    * ``repartition_times``: the times of those re-partitions, all phases' in time order, in
+      the first ``MAX_RECORDED_REPARTITIONS`` slots with NaN in the unused ones (as one solve
+      records them), or ``None`` when no phase has automatically partitioned constraints. A
+      phase that never starts (it follows an event that did not trigger or a failed phase)
+      adds none;
     * ``reactions`` and ``constraint_drift`` of every phase with constraints, padded with NaN
       to the largest row count over the phases (``(n_save, s_max)``; a phase with ``s`` rows
       fills columns ``0..s − 1``); ``dict(layout)["phase_constraint_names"]`` names each
@@ -156,6 +163,7 @@ def _join_phases(ts, parts, ends, switches, work_names, energetic):
         result = RESULTS.where(ok, p.result, result)
     stats = {k: sum(p.stats[k] for p in parts) for k in ("num_steps", "num_accepted_steps", "num_rejected_steps")}
     stats["phase"] = phase
+    stats["num_repartitions"], repartition_times = _joined_repartitions(parts, ends)
     if "v0_correction" in parts[0].stats:
         stats["v0_correction"] = parts[0].stats["v0_correction"]
     if switches:
@@ -168,8 +176,32 @@ def _join_phases(ts, parts, ends, switches, work_names, energetic):
     return Solution(
         t=ts, q=q_out, v=v_out, energy=energy, work=work or {}, energy_drift=drift, constraint_drift=cdrift,
         reactions=reactions, stats=stats, result=result, t_final=final.t_final, q_final=final.q_final,
-        v_final=final.v_final, layout=_phases_layout(parts), energy0=energy0,
+        v_final=final.v_final, layout=_phases_layout(parts), energy0=energy0, repartition_times=repartition_times,
     )
+
+
+def _joined_repartitions(parts, ends):
+    """``(num_repartitions, repartition_times)`` of the joined run: the phases' counts summed and
+    their recorded times concatenated in phase order, the recorded ones moved to the front and
+    cut to ``MAX_RECORDED_REPARTITIONS`` (``None`` when no phase records times)."""
+    t1 = ends[-1]
+    count = jnp.zeros((), jnp.int32)
+    recorded = []
+    # a phase takes part in the joined run only when every earlier phase ended before t1 (an
+    # event that never triggered, or a failed phase, leaves the later phases an empty span)
+    live = jnp.asarray(True)
+    for k, p in enumerate(parts):
+        if k > 0:
+            live = live & (ends[k - 1] < t1)
+        count = count + jnp.where(live, p.stats["num_repartitions"], 0).astype(jnp.int32)
+        if p.repartition_times is not None:
+            recorded.append(jnp.where(live, p.repartition_times, jnp.nan))
+    if not recorded:
+        return count, None
+    times = jnp.concatenate(recorded)
+    # a stable sort on "unused" keeps the recorded times in their (time) order
+    order = jnp.argsort(jnp.isnan(times), stable=True)
+    return count, times[order][:MAX_RECORDED_REPARTITIONS]
 
 
 def _switch_into(scene, t, q, v):

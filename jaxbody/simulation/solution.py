@@ -115,8 +115,11 @@ class Solution(eqx.Module):
             state, the ones a ``throw=True`` error message quotes).
         layout: static description of ``q``/``v`` (names, joint kinds, addresses) for replay.
         repartition_times: times at which the coordinate partition was re-chosen (the first
-            ``jaxbody.maggi.MAX_RECORDED_REPARTITIONS``, NaN in unused slots), or ``None``
-            without an automatically partitioned constraint set.
+            ``jaxbody.simulation.partitioning.MAX_RECORDED_REPARTITIONS``, NaN in unused
+            slots), or ``None`` without an automatically partitioned constraint set. For a
+            :class:`jaxbody.Phases` run, those of all phases in time order in the same slots
+            (``stats["num_repartitions"]`` their total; the choice made at a switch is not
+            counted).
         energy0: total energy ``E(t0)`` of the initial state (after ``project_initial``), the
             reference of ``energy_balance``, ``energy_error`` and ``energy_drift``; ``None``
             without energy.
