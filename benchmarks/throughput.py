@@ -544,11 +544,11 @@ def compute_targets(results):
     ok_rows = [(m, b, x / y) for m, b, x, y in rows if x and y]
     skipped = {(m, b) for m, b in results.get("skip", [])}
     paired = [(m, b, _get(results["runs"], m, "pairs", "batches", str(b), "median_ratio"))
-              for m in results["runs"] for b in big if results.get("t5_pairs") and (m, b) not in skipped]
+              for m in results["runs"] for b in big if results.get("float32_pairs") and (m, b) not in skipped]
     if paired:
         ok = [(m, b, r) for m, b, r in paired if r]
         sep = {(m, b): r for m, b, r in ok_rows}
-        T.append(dict(id="float32-speed", target=f"float32 throughput >= 1.8x float64 (B >= 1024; median of {results['t5_pairs']} "
+        T.append(dict(id="float32-speed", target=f"float32 throughput >= 1.8x float64 (B >= 1024; median of {results['float32_pairs']} "
                                       "interleaved pairs in one process)",
                       verdict="MET" if ok and len(ok) == len(paired) and all(r >= 1.8 for *_, r in ok) else "NOT MET",
                       detail="; ".join(f"{m} B={b}: {r:.3g}x" + (f" (separate workers {sep[m, b]:.3g}x)" if (m, b) in sep else "")
@@ -690,7 +690,7 @@ def _finish_markdown(results, path, L):
         L += ["## float32 against float64 in pairs", "",
               "One process (`jax_enable_x64` on; a float32 model and float32 states for the float32 rollouts) "
               "compiles both rollouts of a batch, then times float64 and float32 one after the other, "
-              f"{results['t5_pairs']} times (`--float32-pairs`): the drift of a virtual machine's speed between "
+              f"{results['float32_pairs']} times (`--float32-pairs`): the drift of a virtual machine's speed between "
               "the separate workers above moves their ratio by more than the float32 target's margin. System-steps/s are "
               "medians over the pairs.", "",
               _common.markdown_table(["model", "batch", "steps", "float64 /s", "float32 /s", "pair ratios f32/f64", "median"],
@@ -795,9 +795,11 @@ def parse_args(argv=None):
                    help="CPU devices jb.vmap_chunked splits big batches over (sets "
                         "--xla_force_host_platform_device_count for the jaxbody workers; default: cores)")
     p.add_argument("--threads", type=int, default=_common.core_count(), help="MuJoCo 'all cores' thread count")
-    p.add_argument("--float32-pairs", "--t5-pairs", dest="t5_pairs", metavar="N", type=int, default=0,
+    p.add_argument("--float32-pairs", dest="float32_pairs", metavar="N", type=int, default=0,
                    help="also time float64 and float32 one after the other in one process, this many pairs per "
                         "model and batch >= 1024 (the float32 speed target then reads the median pair ratio; default 0: separate workers only)")
+    # the flag's earlier spelling, which the commands stamped in older records use
+    p.add_argument("--t5-pairs", dest="float32_pairs", type=int, help=argparse.SUPPRESS)
     p.add_argument("--no-accuracy", action="store_true", help="skip the float32/float64 accuracy runs")
     p.add_argument("--accuracy-models", default="panda,chain20", help="models of the accuracy runs")
     p.add_argument("--accuracy-states", type=int, default=4)
@@ -842,6 +844,8 @@ def main(argv=None):
         return 0
     if args.rerender:
         results = json.loads(args.rerender.read_text())
+        if "t5_pairs" in results:  # the key's earlier name, in records made before it was renamed
+            results["float32_pairs"] = results.pop("t5_pairs")
         results["accuracy"] = accuracy_table(results)
         results["targets"] = compute_targets(results)
         args.out.mkdir(parents=True, exist_ok=True)
@@ -866,7 +870,7 @@ def main(argv=None):
                "kernel": args.kernel,
                "steps": args.steps, "max_work": args.max_work, "single_steps": args.single_steps, "dt": DT,
                "accuracy_states": args.accuracy_states, "skip": sorted(map(list, args.skip)), "note": args.note,
-               "t5_pairs": args.t5_pairs,
+               "float32_pairs": args.float32_pairs,
                "runs": {}}
     t_start = time.perf_counter()
     me = str(pathlib.Path(__file__).resolve())
@@ -915,8 +919,8 @@ def main(argv=None):
                             break  # a bigger batch will not compile faster
                 write_records(results, args, t_start)  # after each worker: a run cut short keeps what it has
             big = [b for b in batches if b >= 1024]
-            if args.t5_pairs and big:
-                r = runs["pairs"] = go("pairs", dict(base, batches=big, pairs=args.t5_pairs), args.timeout, env_jb, "pairs")
+            if args.float32_pairs and big:
+                r = runs["pairs"] = go("pairs", dict(base, batches=big, pairs=args.float32_pairs), args.timeout, env_jb, "pairs")
                 log(f"{model} float32/float64 pairs ({r['status']}): " + ", ".join(
                     f"B={b} median {_get(r, 'batches', str(b), 'median_ratio') or float('nan'):.3g}x" for b in big))
             write_records(results, args, t_start)
