@@ -1,4 +1,5 @@
-"""Test configuration: float64 and strict dtype promotion for every test (STYLE rule 13)."""
+"""Test configuration: every test runs in float64 with strict dtype promotion, so a silent
+narrowing to float32 or an implicit promotion between dtypes fails the test."""
 
 import pathlib
 
