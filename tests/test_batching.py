@@ -72,3 +72,16 @@ def test_two_host_devices_in_a_subprocess():
     res = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr[-2000:]
     assert "vmap_chunked: batch of 5 does not split over 2 devices" in res.stdout
+
+
+def test_vmap_chunked_compiles_once():
+    traces = []
+
+    def f(x):
+        traces.append(1)
+        return x * 2.0
+
+    g = jb.vmap_chunked(f, 4)
+    g(jnp.ones(8))
+    g(jnp.ones(8) * 3)
+    assert len(traces) == 1

@@ -363,33 +363,55 @@ def test_skeleton_points_match_mujoco_and_planar_geometry(tmp_path):
 BAD_XML = '<mujoco><worldbody><body><joint type="hinge"/><geom size="0.1"/></body></worldbody'
 
 
-@pytest.mark.parametrize(
-    "args, message",
-    [
-        (["simulate", "missing.xml"], "model file not found: 'missing.xml'"),
-        (["simulate", "bad.xml"], "from_mjcf: MuJoCo's compiler rejected the MJCF file 'bad.xml': XML parse error"),
-        (["info", "bad.xml"], "from_mjcf: MuJoCo's compiler rejected the MJCF file 'bad.xml'"),
-        (["simulate", "no_such_example"], "unknown example 'no_such_example': built-in ones are double_pendulum"),
-        (["simulate", "double_pendulum", "--t1", "-1"], "argument --t1: must be positive and finite, got -1"),
-        (["simulate", "double_pendulum", "--solver", "rk45"], "unknown solver 'rk45'; choose from"),
-        (["simulate", "double_pendulum", "--solver", "rk4"], "fixed-step solver 'rk4' needs dt0 (give --dt)"),
-        (["simulate", "panda", "--keyframe", "nope"], "--keyframe: no keyframe named 'nope'; keyframes: ['home']"),
-        (["simulate", "double_pendulum", "--keyframe", "home"], "--keyframe: the built-in example 'double_pendulum' has no keyframes"),
-        (["simulate", "double_pendulum", "--q0", "1,2,3"], "--q0 has 3 values but double_pendulum has nq = 2 (alpha1, alpha2)"),
-        (["simulate", "double_pendulum", "--saves", "1"], "argument --saves: must be at least 2, got 1"),
-        (["info", "missing.urdf"], "model file not found: 'missing.urdf'"),
-    ],
-    ids=lambda x: "-".join(x) if isinstance(x, list) else None,
-)
+BAD_INPUT = [
+    (["simulate", "missing.xml"], "model file not found: 'missing.xml'"),
+    (["simulate", "bad.xml"], "from_mjcf: MuJoCo's compiler rejected the MJCF file 'bad.xml': XML parse error"),
+    (["info", "bad.xml"], "from_mjcf: MuJoCo's compiler rejected the MJCF file 'bad.xml'"),
+    (["simulate", "no_such_example"], "unknown example 'no_such_example': built-in ones are double_pendulum"),
+    (["simulate", "double_pendulum", "--t1", "-1"], "argument --t1: must be positive and finite, got -1"),
+    (["simulate", "double_pendulum", "--solver", "rk45"], "unknown solver 'rk45'; choose from"),
+    (["simulate", "double_pendulum", "--solver", "rk4"], "fixed-step solver 'rk4' needs dt0 (give --dt)"),
+    (["simulate", "panda", "--keyframe", "nope"], "--keyframe: no keyframe named 'nope'; keyframes: ['home']"),
+    (["simulate", "double_pendulum", "--keyframe", "home"], "--keyframe: the built-in example 'double_pendulum' has no keyframes"),
+    (["simulate", "double_pendulum", "--q0", "1,2,3"], "--q0 has 3 values but double_pendulum has nq = 2 (alpha1, alpha2)"),
+    (["simulate", "double_pendulum", "--saves", "1"], "argument --saves: must be at least 2, got 1"),
+    (["info", "missing.urdf"], "model file not found: 'missing.urdf'"),
+]
+# Through a subprocess (the command's exit status and stderr as a shell sees them, with no
+# runtime type checker): errors jaxbody reports, argparse's, and the messages built from
+# MuJoCo's and diffrax's own errors. The others run in process, which starts no interpreter
+# (about 4 s each on 2 cores).
+BAD_INPUT_SUBPROCESS = [BAD_INPUT[i] for i in (0, 1, 2, 4, 5, 6)]
+BAD_INPUT_IN_PROCESS = [case for case in BAD_INPUT if case not in BAD_INPUT_SUBPROCESS]
+
+
+def _check_bad_input(status, out, err, tmp_path, args, message):
+    assert status == 2, (out, err)
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith(f"jaxbody {args[0]}: error: ") and message in lines[0], lines[0]
+    assert out == ""
+    assert list(tmp_path.iterdir()) == [tmp_path / "bad.xml"]  # nothing written
+
+
+@pytest.mark.parametrize("args, message", BAD_INPUT_SUBPROCESS,
+                         ids=lambda x: "-".join(x) if isinstance(x, list) else None)
 def test_bad_input_is_one_line_and_status_2(tmp_path, args, message):
     (tmp_path / "bad.xml").write_text(BAD_XML)
     r = run_cli(*args, cwd=tmp_path)
-    assert r.returncode == 2, (r.stdout, r.stderr)
-    lines = r.stderr.strip().splitlines()
-    assert len(lines) == 1, r.stderr
-    assert lines[0].startswith(f"jaxbody {args[0]}: error: ") and message in lines[0], lines[0]
-    assert r.stdout == ""
-    assert list(tmp_path.iterdir()) == [tmp_path / "bad.xml"]  # nothing written
+    _check_bad_input(r.returncode, r.stdout, r.stderr, tmp_path, args, message)
+
+
+@pytest.mark.parametrize("args, message", BAD_INPUT_IN_PROCESS, ids=lambda x: "-".join(x) if isinstance(x, list) else None)
+def test_bad_input_is_one_line_and_status_2_in_process(tmp_path, monkeypatch, capsys, args, message):
+    (tmp_path / "bad.xml").write_text(BAD_XML)
+    monkeypatch.chdir(tmp_path)
+    try:
+        status = main(args)
+    except SystemExit as exc:  # argparse's own errors
+        status = exc.code
+    out, err = capsys.readouterr()
+    _check_bad_input(status, out, err, tmp_path, args, message)
 
 
 @pytest.mark.parametrize(

@@ -19,7 +19,7 @@ import jaxbody as jb
 from jaxbody import constraints as jc
 from jaxbody import maggi
 from jaxbody.examples import disk as dk
-from jaxpr_tools import count_eqns
+from _support.jaxpr_tools import count_eqns
 
 Y_DOWN = (0.0, -1.0, 0.0)  # hinge axis: angle α maps local +x to (cos α, 0, sin α), local −z to (sin α, 0, −cos α)
 
@@ -301,7 +301,7 @@ def test_singular_state_is_a_result_code_in_jit():
     assert int(res[1]) == int(maggi.MaggiResult.singular_parametrisation._value)
 
 
-@pytest.mark.slow  # 30 s; the rolling disk example (same constraint) is in test_disk
+@pytest.mark.slow  # 30 s; the rolling disk example (same constraint) is in test_examples_disk
 def test_rolling_wheel_on_a_free_body_matches_the_disk_example():
     """A free rigid disk + PlaneContact + RollingContact reproduces the rolling disk of the
     paper (coordinates (x, y, ψ, θ, φ)): same accelerations, N and friction reactions."""

@@ -1,11 +1,9 @@
-"""Identities of the joint-space dynamics on random trees (STYLE rule 13).
+"""Identities of the joint-space dynamics on random trees drawn from a seed.
 
 References that are not the code under test: the kinetic energy summed body by body, the
 Christoffel symbols of the mass matrix, energy balance, finite differences.
 """
 
-import pathlib
-import sys
 
 import equinox as eqx
 import jax
@@ -16,9 +14,8 @@ from jax.test_util import check_grads
 
 import jaxbody as jb
 
-sys.path.insert(0, str(pathlib.Path(__file__).parent))
-from jaxpr_tools import count_eqns  # noqa: E402
-from random_models import hinge_chain, random_model, random_state  # noqa: E402
+from _support.jaxpr_tools import count_eqns
+from _support.random_models import hinge_chain, random_model, random_state
 
 SEEDS = [0, 1, 2, 3]
 
@@ -174,7 +171,7 @@ def test_trace_size_does_not_grow_with_body_count(fn):
         return count_eqns(jax.make_jaxpr(f)(q).jaxpr)
 
     # forward_dynamics: trees up to unrolled.MAX_BODIES run the unrolled kernel (a program
-    # that grows with the tree, by design, test_unrolled.py bounds it); above it the
+    # that grows with the tree, by design, test_backends_unrolled.py bounds it); above it the
     # vectorised kernel, whose solve loops: compare two sizes on that path
     from jaxbody.backends import unrolled
 

@@ -4,8 +4,6 @@ Structure round trips against the compiled ``mujoco.MjModel`` on the shared mena
 and on seeded random trees; the import warning and ``strict=True``; errors naming the element.
 """
 
-import pathlib
-import sys
 import warnings
 
 import jax
@@ -18,8 +16,7 @@ from jaxbody.io.mujoco import unsupported_features
 
 mujoco = pytest.importorskip("mujoco")
 
-sys.path.insert(0, str(pathlib.Path(__file__).parent))
-from mjcf_random import random_mjcf, random_state  # noqa: E402
+from _support.mjcf_random import random_mjcf, random_state
 
 MENAGERIE = ("panda", "ur5e", "anymal_c")
 RANDOM_SEEDS = tuple(range(12))
@@ -159,7 +156,7 @@ def test_path_forms(models_dir, tmp_path):
 
 
 def test_jit_twice_with_equal_models(models_dir):
-    """STYLE rule 4: two separately loaded, equal models hit the same jit cache entry."""
+    """Two separately loaded, equal models hit the same jit cache entry."""
     traces = []
 
     def total_mass(mdl):

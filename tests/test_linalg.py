@@ -18,7 +18,7 @@ import pytest
 import scipy.linalg
 from jax.test_util import check_grads
 
-from jaxpr_tools import count_eqns
+from _support.jaxpr_tools import count_eqns
 
 from jaxbody import linalg
 
@@ -391,7 +391,6 @@ def test_mixed_dtypes_follow_the_promotion_rules():
 NO_FLAG_SCRIPT = """
 import jax, numpy as np
 jax.config.update("jax_enable_x64", True)
-from jaxpr_tools import count_eqns
 
 from jaxbody import linalg
 rng = np.random.default_rng(0)

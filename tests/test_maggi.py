@@ -211,7 +211,7 @@ def test_bad_epsilon_is_rejected_at_build_time():
         maggi.constrain(base, [lambda t, q, x: x[0]], q_ref=q)
 
 
-from test_constrained_simulation import PointMass as _Particle  # noqa: E402  (one particle model for both files)
+from test_simulation_constrained import PointMass as _Particle  # noqa: E402  (one particle model for both files)
 
 
 def test_phases_report_the_initial_velocity_correction():

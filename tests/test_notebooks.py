@@ -1,4 +1,4 @@
-"""Execute every ``notebooks/*.ipynb`` top to bottom at a small size (STYLE rule 16).
+"""Execute every ``notebooks/*.ipynb`` top to bottom at a small size.
 
 Committed outputs prove nothing: each notebook runs in a fresh kernel of *this* interpreter
 (a kernelspec written to a temporary folder, so a system-wide ``python3`` kernel cannot

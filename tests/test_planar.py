@@ -39,16 +39,18 @@ def _random_parent(rng, n, n_roots_max=2):
 
 
 _rng = np.random.default_rng(3)
-# (parent, translating base, angle_origin): two random topologies plus an edge case
-TOPOLOGIES = [
+# (parent, translating base, angle_origin): two random topologies plus an edge case; a tuple,
+# so no test can change what the others draw from
+TOPOLOGIES = (
     (_random_parent(_rng, 5), False, 0.0),
     (_random_parent(_rng, 4), True, -0.5 * math.pi),
     ((-1,), True, 0.0),  # one body on a translating base: no carrier pairs
-]
+)
 
 
 def random_system(topology, seed, dtype=np.float64):
-    parent, base, origin = TOPOLOGIES[topology]
+    """Random parameters from ``seed`` on ``topology`` = (parent, translating base, angle_origin)."""
+    parent, base, origin = topology
     rng = np.random.default_rng(seed)
     n = len(parent)
     return planar.from_parents(
@@ -224,15 +226,12 @@ def _close(a, b, rtol=1e-10, atol=1e-10):
     np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=rtol, atol=atol)
 
 
-topology = st.sampled_from(range(len(TOPOLOGIES)))
+topology = st.sampled_from(TOPOLOGIES)
 seed = st.integers(0, 2**31 - 1)
 
 
 # ------------------------------------------------------------------------ identities
-@HYP
-@given(topology, seed)
-def test_random_tree_identities(topo, sd):
-    s = random_system(topo, sd)
+def check_identities(s, sd):
     st_ = random_state(s, sd)
     out = bundle(s, st_)
     M = np.asarray(out["M"])
@@ -256,10 +255,7 @@ def test_random_tree_identities(topo, sd):
     _close(out["dE"], out["P"], atol=1e-8)
 
 
-@HYP
-@given(topology, seed)
-def test_random_tree_reactions_kinematics_and_joint_space(topo, sd):
-    s = random_system(topo, sd)
+def check_reactions_kinematics_and_joint_space(s, sd):
     st_ = random_state(s, sd)
     out = bundle(s, st_)
     parent = s.tree.parent
@@ -286,16 +282,31 @@ def test_random_tree_reactions_kinematics_and_joint_space(topo, sd):
     _close(out["joint_h"], T.T @ np.asarray(out["h"]), atol=1e-10)
 
 
-@HYP
-@given(topology, seed)
-def test_random_tree_point_load_is_virtual_work(topo, sd):
-    s = random_system(topo, sd)
+def check_point_load_is_virtual_work(s, sd):
     out = bundle(s, random_state(s, sd))
     _close(out["Q_load"], out["Q_load_ref"], atol=1e-10)
 
 
+@HYP
+@given(topology, seed)
+def test_random_tree_identities(topo, sd):
+    check_identities(random_system(topo, sd), sd)
+
+
+@HYP
+@given(topology, seed)
+def test_random_tree_reactions_kinematics_and_joint_space(topo, sd):
+    check_reactions_kinematics_and_joint_space(random_system(topo, sd), sd)
+
+
+@HYP
+@given(topology, seed)
+def test_random_tree_point_load_is_virtual_work(topo, sd):
+    check_point_load_is_virtual_work(random_system(topo, sd), sd)
+
+
 def test_point_load_helpers():
-    s = random_system(1, 3)
+    s = random_system(TOPOLOGIES[1], 3)
     st_ = random_state(s, 3)
     body = int(np.argmax(np.asarray(st_["onehot"])))
     out = bundle(s, st_)
@@ -315,14 +326,12 @@ def test_point_load_helpers():
 def test_more_random_topologies(n_body, base, tree_seed):
     """Slow: fresh random topologies (one compilation each) through the same identities."""
     rng = np.random.default_rng(tree_seed)
-    TOPOLOGIES.append((_random_parent(rng, n_body, n_roots_max=3), base, float(rng.choice([0.0, -0.5 * math.pi]))))
-    try:
-        for sd in range(3):
-            test_random_tree_identities.hypothesis.inner_test(len(TOPOLOGIES) - 1, sd)
-            test_random_tree_reactions_kinematics_and_joint_space.hypothesis.inner_test(len(TOPOLOGIES) - 1, sd)
-            test_random_tree_point_load_is_virtual_work.hypothesis.inner_test(len(TOPOLOGIES) - 1, sd)
-    finally:
-        TOPOLOGIES.pop()
+    topo = (_random_parent(rng, n_body, n_roots_max=3), base, float(rng.choice([0.0, -0.5 * math.pi])))
+    for sd in range(3):
+        s = random_system(topo, sd)
+        check_identities(s, sd)
+        check_reactions_kinematics_and_joint_space(s, sd)
+        check_point_load_is_virtual_work(s, sd)
 
 
 # ------------------------------------------------------------------------ trajectory: dE/dt = P
@@ -348,7 +357,7 @@ def _rk4_energy_balance(s, q0, v0, tau, dt, steps):
 
 @pytest.mark.parametrize("topo", [1])
 def test_trajectory_energy_change_equals_work_of_drives(topo):
-    s = random_system(topo, 11)
+    s = random_system(TOPOLOGIES[topo], 11)
     st_ = random_state(s, 11)
     drift = jax.jit(_rk4_energy_balance, static_argnums=(4, 5))(
         s, st_["q"], 0.3 * st_["v"], st_["tau"], 1e-3, 400
@@ -360,7 +369,7 @@ def test_trajectory_energy_change_equals_work_of_drives(topo):
 # ------------------------------------------------------------------------ gradients
 def test_gradients_match_finite_differences():
     parent, base, origin = TOPOLOGIES[1]
-    s0 = random_system(1, 5)
+    s0 = random_system(TOPOLOGIES[1], 5)
     st_ = random_state(s0, 5)
     params = dict(mass=s0.body_mass, com=s0.body_com, hinge_pos=s0.hinge_pos, inertia=s0.body_inertia,
                   base_mass=s0.base_mass, gravity=s0.gravity)
@@ -400,7 +409,7 @@ def _lite(s, q, v, tau):
 @pytest.mark.parametrize("topo", [1])
 def test_float32_matches_float64(topo):
     sd = 7
-    s64, s32 = random_system(topo, sd), random_system(topo, sd, np.float32)
+    s64, s32 = random_system(TOPOLOGIES[topo], sd), random_system(TOPOLOGIES[topo], sd, np.float32)
     st64, st32 = random_state(s64, sd), random_state(s32, sd, np.float32)
     assert s32.body_mass.dtype == jnp.float32
     out64 = _lite(s64, st64["q"], 0.5 * st64["v"], st64["tau"])

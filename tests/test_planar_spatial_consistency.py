@@ -94,7 +94,7 @@ def test_planar_and_spatial_paths_agree(case):
 def _tilted_model(parent, seed, damping=0.0):
     """A spatial model whose hinges are parallel to a tilted axis n, gravity in their plane,
     with full inertia tensors, out-of-plane offsets and non-zero joint references."""
-    from random_models import random_inertia, random_rotation_quat
+    from _support.random_models import random_inertia, random_rotation_quat
 
     rng = np.random.default_rng(seed)
     R0 = np.asarray(jb.kinematics.quat_to_matrix(jnp.asarray(random_rotation_quat(rng))))

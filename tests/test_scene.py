@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from jaxpr_tools import count_eqns
+from _support.jaxpr_tools import count_eqns
+from _support.random_models import random_model, random_state
 
 import jaxbody as jb
 from jaxbody import constraints as jc
@@ -362,7 +363,7 @@ def test_example4_pivot_moving_along_a_line_vs_spec():
     assert float(sol.energy_drift) < 1e-9 and float(jnp.max(jnp.abs(sol.work["support"]))) > 1e-3
 
 
-@pytest.mark.slow  # 20-28 s; Example 5 is checked against the spec in test_constraints and through scenes in test_constrained_simulation
+@pytest.mark.slow  # 20-28 s; Example 5 is checked against the spec in test_constraints and through scenes in test_simulation_constrained
 def test_example5_end_on_vertical_line_through_the_constraint_slot():
     m, a, L, ic, g = (1.0, 0.6), (0.4, 0.3), 0.8, (0.05, 0.02), 9.81
     model = pendulum_chain(m, a, (L, L), ic, g=g)
@@ -474,3 +475,22 @@ def test_planar_path_handles_opposite_hinges_and_dampers():
         np.testing.assert_allclose(planar_scene.acceleration(0.0, q, v), spatial_scene.acceleration(0.0, q, v),
                                    rtol=1e-11, atol=1e-11)
         np.testing.assert_allclose(planar_scene.total_energy(q, v), spatial_scene.total_energy(q, v), rtol=1e-12)
+
+
+def test_model_scene_is_a_dynamical_system():
+    model = random_model(3, n_body=5)
+    q, v, a = random_state(model, 4)
+    system = jb.scene(model)  # a Model is data; its scene carries the protocol
+    for name in ("nq", "nv", "qdot", "acceleration", "total_energy"):
+        assert hasattr(system, name)
+    np.testing.assert_allclose(system.qdot(q, v), jb.qpos_rate(model, q, v))
+    np.testing.assert_allclose(
+        system.acceleration(0.0, q, v, a),
+        jb.forward_dynamics(model, q, v, a + jb.passive_forces(model, q, v)),
+        rtol=1e-12, atol=1e-12,
+    )
+    np.testing.assert_allclose(
+        system.total_energy(q, v), jb.kinetic_energy(model, q, v) + jb.potential_energy(model, q), rtol=1e-13
+    )
+    s = jb.examples.double_pendulum()
+    assert s.acceleration(0.0, jnp.array([0.3, 0.1]), jnp.zeros(2), None).shape == (2,)

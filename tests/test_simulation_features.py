@@ -515,11 +515,7 @@ def test_normalize_qpos_is_a_select_not_a_scatter():
     """normalize_qpos scales each ball/free quaternion to unit length and leaves every other
     coordinate bit for bit, and a vmap batch of it compiles without a loop over the batch
     (an indexed update compiles to a scatter that XLA's CPU backend runs as a while loop)."""
-    import sys
-    import pathlib
-
-    sys.path.insert(0, str(pathlib.Path(__file__).parent))
-    from random_models import random_model
+    from _support.random_models import random_model
 
     model = random_model(3, n_body=6, kinds=("ball", "hinge", "slide"))
     blocks = [qa[:, None] + kind.quaternion + np.arange(4) for kind, _, qa, _ in model.joints.kind_groups()

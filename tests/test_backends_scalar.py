@@ -11,8 +11,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from mjcf_random import random_mjcf
-from random_models import hinge_chain, random_model, random_state
+from _support.mjcf_random import random_mjcf
+from _support.random_models import hinge_chain, random_model, random_state
 
 import jaxbody as jb
 from jaxbody import backends
@@ -59,7 +59,7 @@ def test_adjoint_equals_reverse_mode_through_the_passes(name, model, gravity):
 
 def test_quaternion_joints_keep_reverse_mode():
     """Ball and free joints (a moving reference point) are not served: the programs reverse the
-    passes as before (checked in test_native.py on a free base with a ball)."""
+    passes as before (checked in test_backends_native.py on a free base with a ball)."""
     assert not scalar.adjoint_applies(random_model(0, n_body=2, kinds=("ball",)).joints)
     assert not scalar.adjoint_applies(random_model(0, n_body=3, kinds=("hinge",), free_root=True).joints)
     model = random_model(0, n_body=2, kinds=("ball",))
@@ -103,7 +103,7 @@ def _close(x, y):
 def test_native_reverse_mode_equals_the_vectorised_kernel():
     """The native forward dynamics' reverse-mode program built with the hand-derived block,
     against the vectorised kernel, batched and single (the RK4 step's: in the slow job, and
-    through a rollout gradient in test_native_step.py)."""
+    through a rollout gradient in test_backends_native_step.py)."""
     model, _, q, v, tau, ct, g = _native_case()
 
     def vjp_fd(kernel):

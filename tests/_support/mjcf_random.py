@@ -1,9 +1,8 @@
-"""Seeded random MJCF trees for tests against MuJoCo (STYLE rule 13: random trees from a seed).
+"""Seeded random MJCF trees for tests against MuJoCo (random trees come from a seed, so a failure reproduces).
 
-Import from a test file with::
+Import from a test file with (pytest puts ``tests/`` on ``sys.path``)::
 
-    sys.path.insert(0, str(pathlib.Path(__file__).parent))
-    from mjcf_random import random_mjcf, random_state
+    from _support.mjcf_random import random_mjcf, random_state
 
 :func:`random_mjcf` writes a kinematic tree that always compiles in MuJoCo and mixes every
 joint kind jaxbody supports: a free joint (on root bodies only), ball, hinge and slide joints,

@@ -21,8 +21,8 @@ import jaxbody as jb
 from jaxbody import maggi
 
 L, MASS, G = 1.0, 0.7, 9.81
-T1 = 2.0
-TS = np.linspace(0.0, T1, 41)
+T_END = 2.0
+TS = np.linspace(0.0, T_END, 41)
 KW = dict(saveat=TS, rtol=1e-11, atol=1e-11)
 Q0 = jnp.array([0.0, -L])  # at the bottom
 W0 = 7.0  # rad/s: enough to go over the top
@@ -51,7 +51,7 @@ def pendulum(repartition=True):
 @functools.lru_cache
 def reference():
     """θ(t) from the bottom, dense (θ̈ = −(g/L) sin θ)."""
-    return solve_ivp(lambda t, y: [y[1], -G / L * np.sin(y[0])], (0, T1), [0.0, W0], method="DOP853",
+    return solve_ivp(lambda t, y: [y[1], -G / L * np.sin(y[0])], (0, T_END), [0.0, W0], method="DOP853",
                      rtol=1e-13, atol=1e-13, dense_output=True)
 
 
@@ -63,7 +63,7 @@ def cartesian(theta, omega):
 
 @pytest.fixture(scope="module")
 def scene_run():
-    return jb.simulate(jb.scene(bob_model(), constraints=pendulum()), Q0, jnp.array([W0 * L, 0.0]), T1, **KW)
+    return jb.simulate(jb.scene(bob_model(), constraints=pendulum()), Q0, jnp.array([W0 * L, 0.0]), T_END, **KW)
 
 
 def test_initial_partition_is_x_and_degrades_at_the_horizontal():
@@ -140,12 +140,12 @@ def test_pendulum_through_the_horizontal_repartitions_and_matches_the_joint_angl
     np.testing.assert_array_equal(np.round(quarters), np.arange(1, n + 1))
     assert np.max(np.abs(quarters - np.round(quarters))) < np.arctan(0.1) / (np.pi / 2) + 0.02
     # every quarter reached before t1 (less the band) was passed with a new partition
-    assert n == int(np.floor(ref.sol(T1)[0] / (np.pi / 2) + np.arctan(0.1) / (np.pi / 2)))
+    assert n == int(np.floor(ref.sol(T_END)[0] / (np.pi / 2) + np.arctan(0.1) / (np.pi / 2)))
 
 
 def test_without_repartitioning_the_run_stops_with_the_degradation_code(scene_run):
     scene = jb.scene(bob_model(), constraints=pendulum(repartition=False))
-    sol = jb.simulate(scene, Q0, jnp.array([W0 * L, 0.0]), T1, throw=False, **KW)
+    sol = jb.simulate(scene, Q0, jnp.array([W0 * L, 0.0]), T_END, throw=False, **KW)
     assert sol.result == jb.RESULTS.partition_degraded
     assert int(sol.stats["num_repartitions"]) == 0
     # it stops where the other run changed partition: the first step that ended degraded
@@ -157,7 +157,7 @@ def test_without_repartitioning_the_run_stops_with_the_degradation_code(scene_ru
     theta, omega = reference().sol(np.asarray(sol.t)[done])
     np.testing.assert_allclose(np.asarray(sol.q)[done], cartesian(theta, omega)[0], rtol=0, atol=1e-8)
     with pytest.raises(jb.SimulationError, match="coordinate partition of the constraints degraded"):
-        jb.simulate(scene, Q0, jnp.array([W0 * L, 0.0]), T1, **KW)
+        jb.simulate(scene, Q0, jnp.array([W0 * L, 0.0]), T_END, **KW)
 
 
 @pytest.mark.slow  # ~10-18 s: a second compilation, under vmap
@@ -165,11 +165,11 @@ def test_batch_repartitions_per_member():
     """Under vmap each member keeps its own partition: a small swing keeps ε = ẋ."""
     scene = jb.scene(bob_model(), constraints=pendulum())
     v0s = jnp.array([[W0 * L, 0.0], [1.0, 0.0]])
-    sol = jb.simulate_batch(scene, jnp.stack([Q0, Q0]), v0s, T1, **KW)
+    sol = jb.simulate_batch(scene, jnp.stack([Q0, Q0]), v0s, T_END, **KW)
     counts = np.asarray(sol.stats["num_repartitions"]).tolist()
     assert counts[0] > 0 and counts[1] == 0
     for i, w in enumerate((W0, 1.0)):
-        theta, omega = solve_ivp(lambda t, y: [y[1], -G / L * np.sin(y[0])], (0, T1), [0.0, w], method="DOP853",
+        theta, omega = solve_ivp(lambda t, y: [y[1], -G / L * np.sin(y[0])], (0, T_END), [0.0, w], method="DOP853",
                                  rtol=1e-13, atol=1e-13, t_eval=TS).y
         np.testing.assert_allclose(sol.q[i], cartesian(theta, omega)[0], rtol=0, atol=1e-8)
 
@@ -183,14 +183,14 @@ def single_phase(system):
 def test_constrained_system_and_phase_runner_repartition(scene_run):
     s = pendulum()
     v0 = jnp.array([W0 * L, 0.0])
-    direct = jb.simulate(s, Q0, v0, T1, **KW)
+    direct = jb.simulate(s, Q0, v0, T_END, **KW)
     np.testing.assert_allclose(direct.q, scene_run.q, rtol=0, atol=1e-9)
     assert int(direct.stats["num_repartitions"]) == int(scene_run.stats["num_repartitions"])
-    ph = jb.simulate(single_phase(s), Q0, v0, T1, **KW)
+    ph = jb.simulate(single_phase(s), Q0, v0, T_END, **KW)
     assert ph.result == jb.RESULTS.successful
     theta, omega = reference().sol(np.asarray(ph.t))
     np.testing.assert_allclose(ph.q, cartesian(theta, omega)[0], rtol=0, atol=1e-8)
-    stopped = jb.simulate(single_phase(pendulum(repartition=False)), Q0, v0, T1, throw=False, **KW)
+    stopped = jb.simulate(single_phase(pendulum(repartition=False)), Q0, v0, T_END, throw=False, **KW)
     assert stopped.result == jb.RESULTS.partition_degraded
     # it stops where the run with re-partitioning changed partition first
     assert float(stopped.t_final) == pytest.approx(float(scene_run.repartition_times[0]), abs=1e-12)
@@ -198,7 +198,7 @@ def test_constrained_system_and_phase_runner_repartition(scene_run):
 
 @pytest.mark.slow
 def test_phase_runner_reports_its_repartitions(scene_run):
-    ph = jb.simulate(single_phase(pendulum()), Q0, jnp.array([W0 * L, 0.0]), T1, **KW)
+    ph = jb.simulate(single_phase(pendulum()), Q0, jnp.array([W0 * L, 0.0]), T_END, **KW)
     assert int(ph.stats["num_repartitions"]) == int(scene_run.stats["num_repartitions"])
     np.testing.assert_allclose(ph.repartition_times, scene_run.repartition_times, rtol=0, atol=1e-12)
 

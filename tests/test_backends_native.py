@@ -17,7 +17,7 @@ import mujoco
 import numpy as np
 import pytest
 from jax.test_util import check_grads
-from jaxpr_tools import count_eqns
+from _support.jaxpr_tools import count_eqns
 
 import jaxbody as jb
 from jaxbody import backends
@@ -75,7 +75,7 @@ def test_native_equals_mujoco_on_the_shipped_robots(models_dir, name):
 
 @pytest.mark.parametrize("seed", [0, pytest.param(1, marks=pytest.mark.slow), pytest.param(2, marks=pytest.mark.slow)])
 def test_native_on_random_trees_with_every_joint_kind(seed):
-    from mjcf_random import random_mjcf
+    from _support.mjcf_random import random_mjcf
 
     model = jb.from_mjcf(random_mjcf(seed))
     rng = np.random.default_rng(seed)
@@ -124,7 +124,7 @@ def test_gradients_match_finite_differences():
     several joints on a body (the generated derivatives of quaternion joints:
     ``test_generated_derivatives_equal_the_vectorised_kernel``; Panda's, in the slow job:
     ``test_panda_rollout_gradient_with_generated_derivatives``)."""
-    from random_models import random_model
+    from _support.random_models import random_model
 
     model = random_model(0, n_body=3, kinds=("hinge", "slide", "hinge2", "slide_hinge"), free_root=False)
     assert 4 <= model.nv <= native.MAX_DERIVATIVE_DOFS
@@ -142,7 +142,7 @@ def test_gradients_match_finite_differences():
 def _small_tree():
     """A free base and a ball (9 DoFs, both quaternion joints): the generated derivatives serve
     it (hinges: Panda in ``test_gradients_match_finite_differences``)."""
-    from random_models import random_model
+    from _support.random_models import random_model
 
     model = random_model(0, n_body=2, kinds=("ball",))
     assert model.nv <= native.MAX_DERIVATIVE_DOFS
@@ -271,7 +271,7 @@ def test_reverse_mode_under_vmap_equals_the_vectorised_kernel(models_dir):
 
 
 def test_program_size_does_not_grow_with_the_tree():
-    from random_models import hinge_chain
+    from _support.random_models import hinge_chain
 
     def size(n):
         m = hinge_chain(n)
@@ -368,7 +368,7 @@ print('ok')
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]
 
 
-@pytest.mark.slow  # about 50 s (Panda's generated RK4 step); test_native_step.py covers simulate on the native kernel
+@pytest.mark.slow  # about 50 s (Panda's generated RK4 step); test_backends_native_step.py covers simulate on the native kernel
 def test_simulate_with_the_native_kernel_equals_the_vectorised_one(models_dir):
     from jaxbody import simulation
 
@@ -390,7 +390,7 @@ def test_simulate_with_the_native_kernel_equals_the_vectorised_one(models_dir):
 
 
 def test_unavailable_native_kernel_is_a_clear_error_and_auto_falls_back(monkeypatch, tmp_path):
-    from random_models import hinge_chain
+    from _support.random_models import hinge_chain
 
     model = hinge_chain(2)
     # the package re-exports what its build module defines and uses: both say unavailable
@@ -437,7 +437,7 @@ def test_concurrent_builders_of_one_library_compile_it_once(tmp_path):
 def test_sines_of_large_joint_angles():
     """The kernel's vectorised sine/cosine (range reduction by π/2) at angles of many turns,
     and libm's path beyond 1e5 rad, give the vectorised kernel's accelerations."""
-    from random_models import hinge_chain
+    from _support.random_models import hinge_chain
 
     model = hinge_chain(4)
     rng = np.random.default_rng(9)
@@ -454,7 +454,7 @@ def test_float32_sines_over_many_turns():
     """Single precision has its own (shorter) sine/cosine polynomials: accelerations of a hinge
     chain in float32 stay within float32 rounding of float64 at the same angles, over 4096
     angles spread across ±200 rad (full SIMD blocks and a partial one)."""
-    from random_models import hinge_chain
+    from _support.random_models import hinge_chain
 
     rng = np.random.default_rng(12)
     q32 = jnp.asarray(rng.uniform(-200.0, 200.0, (4093, 3)), jnp.float32)
@@ -493,7 +493,7 @@ def test_scene_energies_from_the_straight_line_kernels_equal_mujoco(kernel):
     joint-spring potentials with the kernel's own straight-line program (one native call for
     a batch of states): against MuJoCo's energies on a random tree with every joint kind and
     springs on every joint (free root, ball joints: springs on the rotation vector)."""
-    from mjcf_random import random_mjcf
+    from _support.mjcf_random import random_mjcf
 
     xml = random_mjcf(0, springs=True)
     model = jb.from_mjcf(xml)

@@ -2,7 +2,6 @@
 
 import jax.numpy as jnp
 import numpy as np
-import pytest
 
 import jaxbody as jb
 from jaxbody import spatial
@@ -197,19 +196,3 @@ def test_translating_base_matrix_is_symmetric_and_is_the_kinetic_energy():
     x = np.concatenate([V, w.reshape(-1)])
     np.testing.assert_allclose(0.5 * x @ D @ x, T, rtol=1e-13)
     del base
-
-
-@pytest.mark.parametrize("fn", ["static_moment", "augmented_inertia"])
-def test_augmented_trace_size_independent_of_body_count(fn):
-    import jax
-
-    def eqns(n):
-        tree = jb.BodyTree([-1] + list(range(n - 1)))
-        args = (jnp.ones(n), jnp.ones((n, 3)), jnp.ones((n, 3)))
-        if fn == "static_moment":
-            f = lambda m, r, R: static_moment(tree, m, r, R)
-        else:
-            f = lambda m, r, R: augmented_inertia(tree, m, jnp.broadcast_to(jnp.eye(3), (n, 3, 3)), r, R)
-        return len(jax.make_jaxpr(f)(*args).jaxpr.eqns)
-
-    assert eqns(4) == eqns(64)

@@ -45,7 +45,7 @@ def _reference_step(model, q, v, h, force, gravity, stiffness, reference, dampin
 
 
 def _models():
-    from random_models import hinge_chain, random_model
+    from _support.random_models import hinge_chain, random_model
 
     chain = hinge_chain(3)
     tree = random_model(0, n_body=2, kinds=("ball",))  # a free base and a ball joint: 9 DoFs

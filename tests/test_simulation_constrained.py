@@ -9,9 +9,6 @@ the disk's own Maggi solve at the saved states, and central finite differences f
 gradient of a loop reaction with respect to a link mass through the solve.
 """
 
-import sys
-from pathlib import Path
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -23,13 +20,12 @@ from jaxbody import constraints as jc
 from jaxbody import maggi
 from jaxbody.examples import disk as dk
 
-sys.path.insert(0, str(Path(__file__).parent))
-from test_constraints import example5, four_bar, four_bar_angles, four_bar_newton_euler, four_bar_rates  # noqa: E402
+from test_constraints import example5, four_bar, four_bar_angles, four_bar_newton_euler, four_bar_rates
 
 # shared by the four-bar tests, so one compiled solve serves them (forward-mode adjoint: the
 # gradient test takes jax.jacfwd through the solve)
 KW = dict(n_save=11, rtol=1e-10, atol=1e-10, adjoint="forward")
-T1 = 1.0
+T_END = 1.0
 
 
 def four_bar_state(crank_angle, crank_rate):
@@ -52,7 +48,7 @@ def ex5():
 @pytest.fixture(scope="module")
 def four_bar_run(four_bar_scene):
     q0, v0 = four_bar_state(0.6, 2.0)
-    return jb.simulate(four_bar_scene, q0, v0, T1, **KW)
+    return jb.simulate(four_bar_scene, q0, v0, T_END, **KW)
 
 
 def test_four_bar_scene_reactions_and_residuals(four_bar_scene, four_bar_run):
@@ -95,21 +91,21 @@ def test_four_bar_scene_equals_constrained_system(four_bar_run):
     """The scene path (gravity a declared effect, M and f from the scene) and the
     ConstrainedSystem itself (its ModelBase bracket) integrate the same motion."""
     sol = four_bar_run
-    direct = jb.simulate(four_bar(), sol.q[0], sol.v[0], T1, **KW)
+    direct = jb.simulate(four_bar(), sol.q[0], sol.v[0], T_END, **KW)
     np.testing.assert_allclose(direct.q, sol.q, atol=1e-9)
     np.testing.assert_allclose(direct.reactions, sol.reactions, rtol=1e-7, atol=1e-8)
     np.testing.assert_allclose(direct.constraint_drift["position"], sol.constraint_drift["position"], atol=1e-9)
 
 
-@pytest.mark.slow  # about 45 s; a constrained simulate_batch stays in the default suite (test_repartition)
+@pytest.mark.slow  # about 45 s; a constrained simulate_batch stays in the default suite (test_simulation_partitioning)
 def test_four_bar_batch_equals_loop(four_bar_scene):
     states = [four_bar_state(a, w) for a, w in ((0.6, 2.0), (1.4, -1.0), (2.5, 0.5))]
     q0s = jnp.stack([s[0] for s in states])
     v0s = jnp.stack([s[1] for s in states])
-    batch = jb.simulate_batch(four_bar_scene, q0s, v0s, T1, **KW)
+    batch = jb.simulate_batch(four_bar_scene, q0s, v0s, T_END, **KW)
     assert batch.reactions.shape == (3, 11, 2) and batch.constraint_drift["velocity"].shape == (3, 11, 2)
     for i in range(3):
-        one = jb.simulate(four_bar_scene, q0s[i], v0s[i], T1, **KW)
+        one = jb.simulate(four_bar_scene, q0s[i], v0s[i], T_END, **KW)
         np.testing.assert_allclose(batch.q[i], one.q, rtol=0, atol=1e-12)
         np.testing.assert_allclose(batch.v[i], one.v, rtol=0, atol=1e-12)
         np.testing.assert_allclose(batch.reactions[i], one.reactions, rtol=1e-12, atol=1e-12)

@@ -32,7 +32,7 @@ def _fresh_traces():
 
 
 def _models():
-    from random_models import hinge_chain, random_model
+    from _support.random_models import hinge_chain, random_model
 
     chain = hinge_chain(3)
     chain = eqx.tree_at(lambda m: (m.joint_stiffness, m.dof_damping), chain,
@@ -188,7 +188,7 @@ def test_native_solve_parameter_gradient_goes_step_by_step(monkeypatch):
     """A gradient with respect to the model's parameters comes from the step-by-step solve
     (not the native sweep), checked against central differences of the native solve along
     every body mass. (Forward mode, ``adjoint=ForwardMode()``, never takes the native solve:
-    test_native_step.py's rollout gradient.)"""
+    test_backends_native_step.py's rollout gradient.)"""
     model = _models()["chain"]
     q0, v0 = _state(model, 3)
     calls = []

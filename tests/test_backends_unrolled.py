@@ -1,6 +1,6 @@
 """The unrolled forward-dynamics kernel against the vectorised one and MuJoCo.
 
-The vectorised kernel agrees with MuJoCo to ~1e-14 (test_mujoco_reference.py); here the
+The vectorised kernel agrees with MuJoCo to ~1e-14 (test_dynamics_mujoco.py); here the
 unrolled kernel is compared with both on the shipped robots and on seeded random MJCF trees
 with every joint kind, in float64 and float32, single and batched, with derivatives.
 """
@@ -11,7 +11,7 @@ import mujoco
 from jax.test_util import check_grads
 import numpy as np
 import pytest
-from jaxpr_tools import count_eqns
+from _support.jaxpr_tools import count_eqns
 
 import jaxbody as jb
 from jaxbody import backends, kernels
@@ -53,7 +53,7 @@ def test_unrolled_equals_vectorised_and_mujoco(models_dir, name):
 
 @pytest.mark.parametrize("seed", [0, 1, 2, 3])
 def test_unrolled_on_random_trees_with_every_joint_kind(seed):
-    from mjcf_random import random_mjcf
+    from _support.mjcf_random import random_mjcf
 
     model = jb.from_mjcf(random_mjcf(seed))
     rng = np.random.default_rng(seed)

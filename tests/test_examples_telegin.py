@@ -121,12 +121,12 @@ def test_table_t3_example1_double_pendulum():
 
 
 # --------------------------------------------------------------------------- T-2
-T2 = dict(mass=[2.0, 1.5, 0.8], com_distance=[0.35, 0.25, 0.15], length=[0.7, 0.5], inertia=[0.09, 0.04, 0.01])
+TABLE_T2 = dict(mass=[2.0, 1.5, 0.8], com_distance=[0.35, 0.25, 0.15], length=[0.7, 0.5], inertia=[0.09, 0.04, 0.01])
 T2_Q, T2_V, T2_TAU = (0.3, -0.5, 1.1), (0.8, -1.2, 2.0), (3.0, -1.0, 0.5)
 
 
 def test_table_t2_three_link_chain():
-    s = planar.chain(**T2, gravity=G, names=("shoulder", "forearm", "hand"))
+    s = planar.chain(**TABLE_T2, gravity=G, names=("shoulder", "forearm", "hand"))
     q, v = a(*T2_Q), a(*T2_V)
     out = evaluate(s, 0.0, q, v, a(*T2_TAU))
     ab = out["aug_body"]

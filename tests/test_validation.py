@@ -1,0 +1,73 @@
+"""Parameter and input checks (validation.py): messages that name the input, the body or the
+joint at fault, eagerly and under ``jit``, for spatial models and planar systems."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import pytest
+
+import jaxbody as jb
+
+from _support.random_models import hinge_chain
+from test_model import good_builder
+
+
+
+def test_nan_parameters_in_a_model_are_reported_by_field():
+    model = good_builder().build()
+    bad = jax.tree_util.tree_map(lambda x: x, model)
+    import equinox as eqx
+
+    bad = eqx.tree_at(lambda m: m.body_mass, model, jnp.array([jnp.nan]))
+    with pytest.raises(ValueError, match=r"body 0 \('base'\): body_mass is not finite"):
+        jb.validate_parameters(bad)
+
+
+# ----------------------------------------------------------------------------- errors
+def test_boundary_messages_name_the_input_at_fault():
+    model = hinge_chain(2)
+    q, v = jnp.array([0.1, 0.2]), jnp.zeros(2)
+    # eager calls: plain ValueErrors; under (filter_)jit: EquinoxRuntimeError, same text
+    with pytest.raises(ValueError, match="^tau contains NaN or inf$"):
+        jb.forward_dynamics(model, q, v, jnp.array([jnp.nan, 0.0]))
+    with pytest.raises(eqx.EquinoxRuntimeError, match="tau contains NaN or inf"):
+        eqx.filter_jit(jb.forward_dynamics)(model, q, v, jnp.array([jnp.nan, 0.0]))
+    with pytest.raises(ValueError, match="^v contains NaN or inf$"):
+        jb.forward_dynamics(model, q, jnp.array([0.0, jnp.inf]))
+    with pytest.raises(ValueError, match="^a contains NaN or inf$"):
+        jb.inverse_dynamics(model, q, v, jnp.array([jnp.nan, 0.0]))
+    with pytest.raises(ValueError, match="^external contains NaN or inf$"):
+        jb.inverse_dynamics(model, q, v, v, external=jnp.full((2, 6), jnp.nan))
+    with pytest.raises(ValueError, match=r"tau has shape \(3,\), expected \(2,\)"):
+        jb.forward_dynamics(model, q, v, jnp.zeros(3))
+    with pytest.raises(ValueError, match=r"external has shape \(2, 3\), expected \(2, 6\)"):
+        jb.inverse_dynamics(model, q, v, v, external=jnp.zeros((2, 3)))
+    # parameters set after building (eqx.tree_at) are checked at the boundary, naming the body
+    bad = eqx.tree_at(lambda m: m.body_mass, model, jnp.array([1.0, -0.5]))
+    with pytest.raises(ValueError, match=r"^body 1 \('link1'\): body_mass is negative$"):
+        jb.forward_dynamics(bad, q, v)
+    bad = eqx.tree_at(lambda m: m.dof_damping, model, jnp.array([0.0, jnp.nan]))
+    with pytest.raises(eqx.EquinoxRuntimeError, match=r"joint 1 \('link1_hinge0'\): dof_damping is not finite"):
+        eqx.filter_jit(lambda m: jb.mass_matrix(m, q))(bad)
+    bad = eqx.tree_at(lambda m: m.body_com, model, model.body_com.at[0, 2].set(jnp.nan))
+    with pytest.raises(ValueError, match=r"body 0 \('link0'\): body_com is not finite"):
+        jb.check_inputs(bad)
+    # planar systems: same boundary, their own parameter names
+    s = jb.examples.double_pendulum()
+    with pytest.raises(ValueError, match=r"q contains NaN or inf"):
+        jb.check_inputs(s, q=jnp.array([jnp.nan, 0.0]))
+    bad = eqx.tree_at(lambda m: m.body_mass, s, jnp.array([1.0, -0.6]))
+    with pytest.raises(eqx.EquinoxRuntimeError, match=r"planar body 1 \('link2'\): body_mass is negative"):
+        eqx.filter_jit(lambda s: jb.check_inputs(s, q=jnp.zeros(2)))(bad)
+    with pytest.raises(ValueError, match=r"planar system: tau has shape \(3,\), expected \(2,\)"):
+        jb.check_inputs(s, tau=jnp.zeros(3))
+    with pytest.raises(ValueError, match=r"planar system: external loads are external_force \(n_body, 2\)"):
+        jb.check_inputs(s, external=jnp.zeros((2, 6)))
+
+
+def test_check_inputs_returns_checked_values_and_passes_good_ones():
+    model = hinge_chain(2)
+    q, v, tau = jnp.array([0.1, 0.2]), jnp.array([1, 2]), jnp.zeros(2)
+    out = jax.jit(lambda m, q, v, t: jb.check_inputs(m, q=q, v=v, tau=t))(model, q, v, tau)
+    assert len(out) == 4 and out[0] == model and out[2].dtype == model.body_mass.dtype
+    assert jb.check_inputs(model, q=q)[1].shape == (2,)
