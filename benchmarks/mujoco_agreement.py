@@ -2,7 +2,7 @@
 
 Models: the shipped robots (jaxbody/models: panda, ur5e, anymal_c) and seeded random MJCF trees that mix
 free, ball, hinge and slide joints, several joints per body, offset anchors, rotated
-inertial frames and mass ratios up to 1e4 (``tests/mjcf_random.py``). For each model and
+inertial frames and mass ratios up to 1e4 (``tests/_support/mjcf_random.py``). For each model and
 random state (quaternions normalised) it compares with MuJoCo on the same MJCF:
 
   mass_matrix ~ mj_fullM, bias_forces ~ qfrc_bias, inverse_dynamics ~ mj_inverse (passive
@@ -44,7 +44,7 @@ def main(argv=None):
 
     import _common
     import jaxbody as jb
-    from mjcf_random import random_mjcf
+    from _support.mjcf_random import random_mjcf
 
     shipped = REPO / "jaxbody" / "models"
     sources = [(n, (shipped / f"{n}.xml").read_text()) for n in ("panda", "ur5e", "anymal_c")]

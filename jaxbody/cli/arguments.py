@@ -111,8 +111,8 @@ def add_scene_options(p, verb):
                         "(MuJoCo xfrc_applied); repeatable")
 
 
-def one_line(text: str) -> str:
-    """A (multi-line) message on one line, its lines joined by ``; ``."""
+def one_line(text: object) -> str:
+    """A (multi-line) message (a string or an exception) on one line, its lines joined by ``; ``."""
     return "; ".join(s.strip() for s in str(text).splitlines() if s.strip())
 
 
