@@ -178,7 +178,7 @@ class BodyLoads(Effect):
 
     def generalized_force(self, ctx: EffectContext):
         w = jnp.asarray(self.wrench(ctx.t, ctx.q, ctx.v), ctx.v.dtype)
-        return ctx.scene.body_wrench_force(ctx, w[:, :3], w[:, 3:])
+        return ctx.scene.body_wrench_force(ctx, w)
 
     def check(self, scene):
         dt = jnp.result_type(float)

@@ -130,8 +130,9 @@ class Scene(eqx.Module):
         """Potential ``−Σ m_k field·C_k`` of the uniform field ``field``."""
 
     @abc.abstractmethod
-    def body_wrench_force(self, ctx: EffectContext, force, torque) -> Float[Array, " nv"]:
-        """Generalized force of world forces/torques applied at the bodies' centres of mass."""
+    def body_wrench_force(self, ctx: EffectContext, wrenches: Float[Array, "n_body 6"]) -> Float[Array, " nv"]:
+        """Generalized force of world forces/torques applied at the bodies' centres of mass
+        (``wrenches``: force then torque per body, MuJoCo's ``xfrc_applied`` layout)."""
 
     # ------------------------------------------------------------------ protocol
     @abc.abstractmethod

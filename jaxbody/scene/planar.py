@@ -76,7 +76,7 @@ class PlanarScene(ModelScene):
         _, com = body_positions(self.planar, ctx.angles[0])
         return -jnp.sum(self.planar.body_mass * (com @ (self.plane @ field)))
 
-    def body_wrench_force(self, ctx: EffectContext, force, torque):
+    def body_wrench_force(self, ctx: EffectContext, wrenches):
         # out-of-plane loads have no meaning in absolute angles; the builder keeps scenes with
         # loads on the spatial path, so this is reached only by a hand-made effect
         raise ValueError("body loads need the spatial path")

@@ -65,8 +65,8 @@ class SpatialScene(ModelScene):
         field = jnp.asarray(field, ctx.q.dtype)
         return -jnp.sum(self.system.body_mass * (ctx.kinematics.com @ field))
 
-    def body_wrench_force(self, ctx: EffectContext, force, torque):
-        return body_wrench_force(self.system, ctx.kinematics, jnp.concatenate([force, torque], axis=-1))
+    def body_wrench_force(self, ctx: EffectContext, wrenches):
+        return body_wrench_force(self.system, ctx.kinematics, wrenches)
 
     # ------------------------------------------------------------------ protocol
     def evaluate(self, t, q, v, tau=None):

@@ -67,7 +67,7 @@ class SystemScene(Scene):
     def uniform_field_potential(self, ctx: EffectContext, field):
         raise ValueError(f"uniform fields need a jaxbody.Model; {type(self.system).__name__} brings its own gravity")
 
-    def body_wrench_force(self, ctx: EffectContext, force, torque):
+    def body_wrench_force(self, ctx: EffectContext, wrenches):
         raise ValueError("body loads need the spatial path")
 
     def qdot(self, q: Float[Array, " nq"], v: Float[Array, " nv"]) -> Float[Array, " nq"]:
