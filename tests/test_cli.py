@@ -57,6 +57,14 @@ def run_cli(*args, cwd=None, timeout=300, **popen):
     return subprocess.run(cmd, cwd=cwd, env=env, text=True, capture_output=True, timeout=timeout)
 
 
+def main_status(args) -> int:
+    """The command's exit status, run in this process (argparse's own errors exit through SystemExit)."""
+    try:
+        return main(args)
+    except SystemExit as exc:
+        return exc.code
+
+
 def read_csv(path):
     with open(path) as f:
         rows = list(csv.reader(f))
@@ -406,10 +414,7 @@ def test_bad_input_is_one_line_and_status_2(tmp_path, args, message):
 def test_bad_input_is_one_line_and_status_2_in_process(tmp_path, monkeypatch, capsys, args, message):
     (tmp_path / "bad.xml").write_text(BAD_XML)
     monkeypatch.chdir(tmp_path)
-    try:
-        status = main(args)
-    except SystemExit as exc:  # argparse's own errors
-        status = exc.code
+    status = main_status(args)
     out, err = capsys.readouterr()
     _check_bad_input(status, out, err, tmp_path, args, message)
 
@@ -436,10 +441,7 @@ def test_bad_input_is_one_line_and_status_2_in_process(tmp_path, monkeypatch, ca
 def test_bad_scene_options_are_one_line_and_status_2(tmp_path, monkeypatch, capsys, args, message):
     """In process (the subprocess path of usage errors is tested above): nothing written."""
     monkeypatch.chdir(tmp_path)
-    try:
-        status = main(args)
-    except SystemExit as exc:  # argparse's own errors
-        status = exc.code
+    status = main_status(args)
     out, err = capsys.readouterr()
     assert status == 2, (out, err)
     lines = err.strip().splitlines()
