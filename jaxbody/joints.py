@@ -169,6 +169,13 @@ class JointLayout:
             raise ValueError(
                 f"joint layout: {nj} joint kinds but {len(joint_body)} joint bodies were given"
             )
+        if nj == 0:
+            # every body welded to the world: nothing moves, and the joint-space arrays the engine
+            # is written over (nv >= 1) would be empty
+            raise ValueError(
+                f"model has no degree of freedom: no body has a joint ({tree.n_body} "
+                f"{'body' if tree.n_body == 1 else 'bodies'} welded to the world); add a joint to a body"
+            )
         if joint_names is None:
             joint_names = [f"joint{j}" for j in range(nj)]
         joint_names = tuple(str(s) for s in joint_names)

@@ -547,3 +547,11 @@ def _assert_models_equal(a, b):
     assert ta == tb
     for x, y in zip(la, lb):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_a_model_without_a_degree_of_freedom_is_a_clear_error():
+    xml = """<mujoco><worldbody><body name="plate">
+      <inertial pos="0 0 0" mass="1" diaginertia="1 1 1"/></body></worldbody></mujoco>"""
+    with pytest.raises(ValueError, match=r"from_mjcf: .*model has no degree of freedom: no body has a joint "
+                                         r"\(1 body welded to the world\); add a joint to a body"):
+        jb.from_mjcf(xml)

@@ -46,6 +46,14 @@ def test_builder_rejects_unknown_parent_and_duplicates():
         jb.ModelBuilder().build()
 
 
+def test_builder_rejects_a_model_without_a_degree_of_freedom():
+    b = jb.ModelBuilder()
+    b.add_body("plate", mass=1.0, inertia=(0.1, 0.1, 0.1))
+    b.add_body("bracket", "plate", mass=0.5, inertia=(0.01, 0.01, 0.01))
+    with pytest.raises(ValueError, match=r"model has no degree of freedom: no body has a joint \(2 bodies welded"):
+        b.build()
+
+
 def test_free_joint_must_be_alone():
     b = jb.ModelBuilder()
     b.add_body("a", mass=1.0, inertia=(0.1, 0.1, 0.1), joints=[jb.Free(), jb.Hinge()])
