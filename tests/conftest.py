@@ -1,17 +1,33 @@
 """Test configuration: every test runs in float64 with strict dtype promotion, so a silent
-narrowing to float32 or an implicit promotion between dtypes fails the test; and the processes of
+narrowing to float32 or an implicit promotion between dtypes fails the test; the processes of
 one run (pytest-xdist workers, and the ``jaxbody`` commands, notebooks and benchmark scripts
 the tests start) share one JAX compilation cache, so a program several tests compile the same
-way is compiled once per run."""
+way is compiled once per run; and XLA compiles without its machine-code optimiser (below)."""
 
 import os
 import pathlib
 import shutil
+import subprocess
+import sys
 import tempfile
 
 from jaxbody._xla import set_default_xla_flags  # importing jaxbody does not start JAX's backend
 
 set_default_xla_flags()  # before the backend starts
+
+# Compiling is most of the suite's time, and about half of a compile is LLVM optimising the
+# machine code (measured on tests/test_dynamics_identities.py: 108 s of CPU at the default
+# level, 60 s at level 0). The tests check numbers against references to tolerances, which do
+# not depend on how fast the code runs, so they compile at level 0: the HLO programs and their
+# arithmetic are XLA's, only instruction selection differs. The exceptions, tests that assert
+# that two differently compiled programs agree bit for bit, carry the marker
+# ``default_xla_optimisation`` and run in a subprocess at the default level (below).
+# JAXBODY_TEST_XLA_OPTIMISATION=default runs the whole suite at the default level.
+OPTIMISATION_FLAG = "--xla_backend_optimization_level"
+REDUCED_OPTIMISATION = (os.environ.get("JAXBODY_TEST_XLA_OPTIMISATION") != "default"
+                        and OPTIMISATION_FLAG not in os.environ.get("XLA_FLAGS", ""))
+if REDUCED_OPTIMISATION:
+    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {OPTIMISATION_FLAG}=0".strip()
 
 # The first process of a run (the xdist controller, or the only process) makes the cache
 # folder and hands it to every process it starts through JAX's environment variables; each
@@ -32,6 +48,20 @@ jax.config.update("jax_numpy_dtype_promotion", "strict")
 jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
 jax.config.update("jax_persistent_cache_min_compile_time_secs",
                   float(os.environ.get("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "1.0")))
+
+
+def pytest_pyfunc_call(pyfuncitem):
+    """A test marked ``default_xla_optimisation`` runs in a pytest subprocess at XLA's default
+    optimisation level when this process compiles at a reduced one (see the top of this file)."""
+    if not (REDUCED_OPTIMISATION and pyfuncitem.get_closest_marker("default_xla_optimisation")):
+        return None
+    env = dict(os.environ, JAXBODY_TEST_XLA_OPTIMISATION="default")
+    env["XLA_FLAGS"] = " ".join(f for f in env["XLA_FLAGS"].split() if not f.startswith(OPTIMISATION_FLAG))
+    done = subprocess.run([sys.executable, "-m", "pytest", "-p", "no:cacheprovider", "-n", "0", "-q",
+                           "-m", "", pyfuncitem.nodeid], cwd=REPO, env=env, capture_output=True,
+                          text=True, timeout=900)
+    assert done.returncode == 0, f"at XLA's default optimisation level:\n{done.stdout[-6000:]}{done.stderr[-2000:]}"
+    return True
 
 
 def pytest_unconfigure(config):
