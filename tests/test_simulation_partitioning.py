@@ -143,7 +143,7 @@ def test_pendulum_through_the_horizontal_repartitions_and_matches_the_joint_angl
     assert n == int(np.floor(ref.sol(T_END)[0] / (np.pi / 2) + np.arctan(0.1) / (np.pi / 2)))
 
 
-@pytest.mark.default_xla_optimisation  # the two runs agree bit for bit up to the stop
+@pytest.mark.default_optimisation  # the two runs agree bit for bit up to the stop
 def test_without_repartitioning_the_run_stops_with_the_degradation_code(scene_run):
     scene = jb.scene(bob_model(), constraints=pendulum(repartition=False))
     sol = jb.simulate(scene, Q0, jnp.array([W0 * L, 0.0]), T_END, throw=False, **KW)

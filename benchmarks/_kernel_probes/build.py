@@ -74,7 +74,7 @@ def main(argv=None):
         stamp_markdown(rec["stamp"]),
         "",
         "Each program generated for float64 without body loads and compiled from scratch with the "
-        "kernel's flags (`jaxbody.backends.native.build.COMPILER_FLAGS`); `fd` is built on a tree's first use, `jvp`/`vjp` "
+        "kernel's flags (`jaxbody.backends.native.build.compiler_flags()`); `fd` is built on a tree's first use, `jvp`/`vjp` "
         "on its first derivative (trees up to `MAX_DERIVATIVE_DOFS`).",
         "",
         markdown_table(["model", "nv", "program", "lines", "compile s"], rows),
