@@ -36,6 +36,10 @@ class Case:
     id: str
     call: Callable
     pattern: str
+    # inside jax.jit an error raised while the program runs reaches the user as JAX's runtime
+    # error, whose first line JAX writes ("INTERNAL: CpuCallback error ..."); for those cases
+    # the pattern is pinned in the text below it
+    first_line: bool = True
 
 
 class CommandFailed(Exception):
@@ -153,19 +157,41 @@ def sim(system, q0=None, v0=None, t1=0.1, **kw):
     return jb.simulate(system, q0, z(system.nv) if v0 is None else v0, t1, **kw)
 
 
-class Gain(eqx.Module):
-    """A control law whose gain is a parameter (one compiled solve serves every value)."""
+class Law(eqx.Module):
+    """A control law ``−k √(q − c)`` whose gain and offset are parameters: one compiled solve
+    serves every case that integrates (``c = −10``: a benign law; ``c = 0.25``: NaN once the
+    pendulum swings below 0.25)."""
 
     k: jax.Array
+    c: jax.Array
 
     def __call__(self, t, q, v):
-        # the square root of a negative number is NaN: a law that breaks down at q < 0.25
-        return -self.k * jnp.sqrt(q - 0.25)
+        return -self.k * jnp.sqrt(q - self.c)
 
 
-def nan_law_solve(**kw):
+def law_solve(t1=0.1, c=-10.0, k=0.0, q0=0.3):
+    """The pendulum under :class:`Law` from ``q0`` at rest; every such solve shares one program
+    (a budget of 64 steps, plenty for 0.1 s)."""
+    return jb.simulate(pendulum(), jnp.array([q0]), z(1), t1, tau=Law(jnp.array(k), jnp.array(c)), max_steps=64)
+
+
+def nan_law_solve():
     """A control law that returns NaN once the pendulum swings below q = 0.25."""
-    return sim(pendulum(), jnp.array([0.3]), z(1), 1.0, tau=Gain(jnp.array(1.0)), **kw)
+    return law_solve(1.0, c=0.25, k=1.0)
+
+
+@functools.lru_cache
+def _jitted_solve():
+    return jax.jit(lambda q0, ts: law_solve_at(q0, ts).q)
+
+
+def law_solve_at(q0, ts):
+    return jb.simulate(pendulum(), q0, z(1), 0.1, tau=Law(jnp.array(0.0), jnp.array(-10.0)), max_steps=64, saveat=ts)
+
+
+def jit_solve(q0=(0.3,), ts=(0.05, 0.1)):
+    """:func:`law_solve_at` under ``jax.jit`` (one compilation for every case)."""
+    return _jitted_solve()(jnp.asarray(q0, float), jnp.asarray(ts, float))
 
 
 def builder(**kwargs):
@@ -188,9 +214,10 @@ def _no_bodies():
     return jb.ModelBuilder().build()
 
 
-def solved(**kw):
-    """A short successful solve of the pendulum (shared compiled program)."""
-    return sim(pendulum(), q1(), z(1), 0.1, **kw)
+@functools.lru_cache
+def solved():
+    """A short successful solve of the pendulum (the program of :func:`law_solve`)."""
+    return law_solve()
 
 
 @functools.lru_cache
@@ -259,9 +286,9 @@ def _dynamics_cases():
         Case("forward_dynamics zero joint axis (tree_at)",
              lambda: jb.forward_dynamics(with_field(p(), "joint_axis", jnp.zeros((1, 3))), q1(), z(1)),
              r"joint 0 \('shoulder'\): joint_axis is zero"),
-        Case("mass_matrix triangle inequality (tree_at)",
-             lambda: jb.mass_matrix(with_field(p(), "body_inertia", jnp.diag(jnp.array([1.0, 0.1, 0.1]))[None]), q1()),
-             r"body 0 \('arm'\): body_inertia violates the triangle inequality"),
+        Case("mass_matrix zero joint axis (tree_at)",
+             lambda: jb.mass_matrix(with_field(c(), "joint_axis", jnp.array([[0, 1.0, 0], [0, 0, 0]])), z(2)),
+             r"joint 1 \('elbow'\): joint_axis is zero"),
         Case("check_inputs planar external", lambda: jb.check_inputs(jb.examples.double_pendulum(), external=jnp.zeros((2, 6))),
              r"planar system: external loads"),
     ]
@@ -398,17 +425,8 @@ def _simulate_cases():
         # failed solves: the reason, not "increase max_steps"
         Case("simulate NaN from the control law", lambda: nan_law_solve(),
              r"solve failed at t = .*(actuation|control law|tau).*NaN"),
-        Case("simulate genuinely too few steps", lambda: sim(p(), q1(), z(1), 1.0, max_steps=3),
-             r"solve failed at t = .*max_steps"),
-        Case("simulate fixed step blows up", lambda: sim(_stiff(), jnp.array([0.3]), z(1), 20.0, solver="euler", dt0=0.1),
-             r"solve failed at t = .*(NaN or inf|blew up)"),
+        Case("simulate genuinely too few steps", lambda: law_solve(t1=20.0), r"solve failed at t = .*max_steps"),
     ]
-
-
-@functools.lru_cache
-def _stiff():
-    """The pendulum with a very stiff spring: explicit fixed steps blow up."""
-    return with_field(pendulum(), "joint_stiffness", [1e6])
 
 
 def _constraint_cases():
@@ -440,13 +458,11 @@ def _traced_cases():
              lambda: jax.vmap(lambda q: sim(p(), q, z(1), 0.1).q)(two), r"q0 contains NaN or inf.*batch member 1"),
         Case("vmap mass_matrix q NaN in member 1",
              lambda: jax.vmap(lambda q: jb.mass_matrix(p(), q))(two), r"\bq contains NaN or inf.*batch member 1"),
-        Case("jit simulate q0 NaN",
-             lambda: jax.jit(lambda q: sim(p(), q, z(1), 0.1).q)(jnp.array([jnp.nan])), r"q0 contains NaN or inf"),
+        Case("jit simulate q0 NaN", lambda: jit_solve(q0=(np.nan,)), r"q0 contains NaN or inf", first_line=False),
         Case("jit mass_matrix q NaN", lambda: jax.jit(lambda q: jb.mass_matrix(p(), q))(jnp.array([jnp.nan])),
-             r"\bq contains NaN or inf"),
-        Case("jit simulate saveat outside [t0, t1]",
-             lambda: jax.jit(lambda ts: sim(p(), q1(), z(1), 0.1, saveat=ts).q)(jnp.array([0.05, 2.0])),
-             r"saveat.*outside \[t0, t1\]"),
+             r"\bq contains NaN or inf", first_line=False),
+        Case("jit simulate saveat outside [t0, t1]", lambda: jit_solve(ts=(0.05, 2.0)), r"saveat.*outside \[t0, t1\]",
+             first_line=False),
         Case("simulate_batch q0s 1-D", lambda: jb.simulate_batch(p(), z(1), z(1), 0.1), r"q0s and v0s must be \(batch, nq\)"),
         Case("simulate_batch chunk_size 0", lambda: jb.simulate_batch(p(), jnp.zeros((2, 1)), jnp.zeros((2, 1)), 0.1, chunk_size=0),
              r"chunk_size must be a positive integer"),
