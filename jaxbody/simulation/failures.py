@@ -23,7 +23,7 @@ from ..model import Model
 from ..scene import ModelScene
 from .solution import RESULTS, SimulationError, Solution, result_code, result_from_code
 
-__all__ = ["raise_on_failure", "failure_message", "diagnose", "mark_invalid"]
+__all__ = ["raise_on_failure", "failure_message", "diagnose", "explain_failure", "mark_invalid"]
 
 # a step this much shorter than the interval is a collapse, not a long motion
 _COLLAPSE = 1e-7
@@ -96,6 +96,15 @@ def diagnose(scene, t, q, v, code, num_steps, t0, t1) -> str | None:
         return (f"the step budget ran out: max_steps = {n} steps reached t = {float(t):.6g} (average step "
                 f"{h:.3g} s); increase max_steps (or loosen rtol/atol) for a longer or faster motion")
     return None
+
+
+def explain_failure(scene, sol: Solution, t0, t1) -> str:
+    """Why the (single, concrete) solve ``sol`` of ``scene`` from ``t0`` to ``t1`` failed, in words:
+    the diagnosis at its final state, else its result code's reason (``throw=False`` callers, such
+    as the command line, report this)."""
+    code = int(np.asarray(result_code(sol.result)))
+    why = diagnose(scene, sol.t_final, sol.q_final, sol.v_final, code, np.asarray(sol.stats["num_steps"]), t0, t1)
+    return why or _reason(code)
 
 
 def raise_on_failure(sol: Solution, scene=None, t0=None, t1=None) -> Solution:

@@ -24,6 +24,7 @@ from .checks import (
     checked_save_times,
     concrete_constraint_check,
     concrete_value_checks,
+    raise_if_any,
     scene_constraints,
     traced_constraint_check,
     traced_position_check,
@@ -127,8 +128,7 @@ def simulate_scene(
             else:
                 checks.append((bad, msg))
         if throw:
-            for bad, msg in checks:
-                q0 = eqx.error_if(q0, bad, msg)
+            q0 = raise_if_any(q0, checks)
             valid = None
         else:
             valid = ~jnp.any(jnp.stack([b for b, _ in checks]))

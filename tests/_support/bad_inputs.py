@@ -182,15 +182,15 @@ def nan_law_solve():
 
 @functools.lru_cache
 def _jitted_solve():
-    return jax.jit(lambda q0, ts: law_solve_at(q0, ts).q)
+    return jax.jit(jax.vmap(lambda q0, ts: law_solve_at(q0, ts).q, in_axes=(0, None)))
 
 
 def law_solve_at(q0, ts):
     return jb.simulate(pendulum(), q0, z(1), 0.1, tau=Law(jnp.array(0.0), jnp.array(-10.0)), max_steps=64, saveat=ts)
 
 
-def jit_solve(q0=(0.3,), ts=(0.05, 0.1)):
-    """:func:`law_solve_at` under ``jax.jit`` (one compilation for every case)."""
+def jit_solve(q0=((0.3,), (0.2,)), ts=(0.05, 0.1)):
+    """:func:`law_solve_at` of a batch of two under ``jax.jit`` (one compilation for every case)."""
     return _jitted_solve()(jnp.asarray(q0, float), jnp.asarray(ts, float))
 
 
@@ -458,7 +458,8 @@ def _traced_cases():
              lambda: jax.vmap(lambda q: sim(p(), q, z(1), 0.1).q)(two), r"q0 contains NaN or inf.*batch member 1"),
         Case("vmap mass_matrix q NaN in member 1",
              lambda: jax.vmap(lambda q: jb.mass_matrix(p(), q))(two), r"\bq contains NaN or inf.*batch member 1"),
-        Case("jit simulate q0 NaN", lambda: jit_solve(q0=(np.nan,)), r"q0 contains NaN or inf", first_line=False),
+        Case("jit vmap simulate q0 NaN in member 1", lambda: jit_solve(q0=((0.3,), (np.nan,))),
+             r"q0 contains NaN or inf \(batch member 1 of 2\)", first_line=False),
         Case("jit mass_matrix q NaN", lambda: jax.jit(lambda q: jb.mass_matrix(p(), q))(jnp.array([jnp.nan])),
              r"\bq contains NaN or inf", first_line=False),
         Case("jit simulate saveat outside [t0, t1]", lambda: jit_solve(ts=(0.05, 2.0)), r"saveat.*outside \[t0, t1\]",
