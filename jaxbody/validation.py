@@ -22,6 +22,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax import lax
 
 from ._util import check_shape, is_concrete
 from .joints import HINGE, JOINT_KINDS, SLIDE
@@ -32,6 +33,7 @@ __all__ = [
     "validate_planar",
     "validate_at_boundary",
     "check_batch_members",
+    "raise_if_any",
     "zero_quaternions",
     "check_quaternions",
 ]
@@ -234,6 +236,43 @@ def check_batch_members(inputs: dict, prefix: str = "") -> None:
             raise ValueError(f"{prefix}{name} contains NaN or inf (batch member {i} of {members.shape[0]})")
 
 
+def raise_if_any(x, checks):
+    """``x``, unchanged, after the traced ``checks`` ``[(bad, message)]``: when one fails the
+    program raises a ``ValueError`` with that check's message and, under ``vmap``, the first
+    batch member that failed it (``q0 contains NaN or inf (batch member 1 of 3)``).
+
+    Like the failure report of a solve, the check is a ``lax.cond`` on "any member failed" whose
+    failing branch calls back to the host and raises there (inside ``jit`` JAX re-raises it as its
+    runtime error, with this text after its own first line). Tangents pass through unchanged."""
+    if not checks:
+        return x
+    flags = jnp.stack([jnp.asarray(b) for b, _ in checks], axis=-1)
+    messages = tuple(m for _, m in checks)
+
+    def report(flags, x):
+        f = np.asarray(flags)
+        flat = f.reshape(-1, f.shape[-1])
+        i = int(np.flatnonzero(flat.any(axis=1))[0])
+        j = int(np.flatnonzero(flat[i])[0])
+        member = f" (batch member {i} of {flat.shape[0]})" if f.ndim > 1 else ""
+        raise ValueError(messages[j] + member)
+
+    @jax.custom_jvp
+    def checked(x, flags):
+        def fail():
+            return jax.pure_callback(report, jax.ShapeDtypeStruct(x.shape, x.dtype), flags, x,
+                                     vmap_method="broadcast_all")
+
+        # one predicate for a whole vmapped batch: the failing branch runs only when some member failed
+        return lax.cond(eqx.internal.unvmap_any(jnp.any(flags)), fail, lambda: x)
+
+    @checked.defjvp
+    def _(primals, tangents):
+        return checked(*primals), tangents[0]
+
+    return checked(x, flags)
+
+
 def zero_axes(model) -> list[int]:
     """The hinge and slide joints of ``model`` whose axis is zero (concrete values)."""
     axes = np.asarray(model.joint_axis)
@@ -421,7 +460,6 @@ def check_inputs(system, *, q=None, v=None, tau=None, a=None, external=None) -> 
     flags, msgs = _parameter_check(system)
     bad_inputs = _nonfinite_inputs(given)
     system = eqx.branched_error_if(system, jnp.any(flags), jnp.argmax(flags), msgs)
-    out = [
-        eqx.error_if(x, bad_inputs[name], f"{name} contains NaN or inf") for name, x in given.items()
-    ]
+    # through a host callback, so that under vmap the message names the batch member at fault
+    out = [raise_if_any(x, [(bad_inputs[name], f"{name} contains NaN or inf")]) for name, x in given.items()]
     return (system, *out)

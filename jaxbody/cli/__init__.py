@@ -21,6 +21,7 @@ the command turns on float64 (``jax_enable_x64``) globally.
 
 import argparse
 import os
+import re
 import sys
 
 from .. import __version__
@@ -76,8 +77,6 @@ def _message(err: Exception) -> str:
     """What an unexpected error says, without a traceback: JAX's runtime errors (from a check or
     a failure inside a compiled program) carry the text of the exception raised inside it after
     a traceback and a banner; that exception's own line is the message."""
-    import re  # why: only needed on this error path
-
     text = str(err)
     if "Traceback (most recent call last)" in text:
         raised = re.findall(r"^(?:[\w.]+\.)?(\w*(?:Error|Exception)): (.+)$", text, flags=re.M)

@@ -16,20 +16,23 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax import lax
 
 from .. import maggi
 from .._util import is_concrete
 from ..effects import JointDampers, JointSprings
 from ..model import Model
 from ..scene import Scene
-from ..validation import check_batch_members, check_quaternions, quaternion_slices, validate_at_boundary
+from ..validation import (
+    check_batch_members,
+    check_quaternions,
+    quaternion_slices,
+    validate_at_boundary,
+)
 
 __all__ = [
     "value_checks",
     "concrete_value_checks",
     "checked_save_times",
-    "raise_if_any",
     "batch_member_checks",
     "Q0_ATOL",
     "check_positive",
@@ -104,43 +107,6 @@ def concrete_value_checks(system, q0, v0):
                     eff.check(system)
                 except ValueError as err:
                     raise ValueError(f"simulate: {err}") from None
-
-
-def raise_if_any(x, checks):
-    """``x``, unchanged, after the traced ``checks`` ``[(bad, message)]``: when one fails the
-    program raises a ``ValueError`` with that check's message and, under ``vmap``, the first
-    batch member that failed it (``q0 contains NaN or inf (batch member 1 of 3)``).
-
-    Like the failure report of a solve, the check is a ``lax.cond`` on "any member failed" whose
-    failing branch calls back to the host and raises there (inside ``jit`` JAX re-raises it as its
-    runtime error, with this text after its own first line). Tangents pass through unchanged."""
-    if not checks:
-        return x
-    flags = jnp.stack([jnp.asarray(b) for b, _ in checks], axis=-1)
-    messages = tuple(m for _, m in checks)
-
-    def report(flags, x):
-        f = np.asarray(flags)
-        flat = f.reshape(-1, f.shape[-1])
-        i = int(np.flatnonzero(flat.any(axis=1))[0])
-        j = int(np.flatnonzero(flat[i])[0])
-        member = f" (batch member {i} of {flat.shape[0]})" if f.ndim > 1 else ""
-        raise ValueError(messages[j] + member)
-
-    @jax.custom_jvp
-    def checked(x, flags):
-        def fail():
-            return jax.pure_callback(report, jax.ShapeDtypeStruct(x.shape, x.dtype), flags, x,
-                                     vmap_method="broadcast_all")
-
-        # one predicate for a whole vmapped batch: the failing branch runs only when some member failed
-        return lax.cond(eqx.internal.unvmap_any(jnp.any(flags)), fail, lambda: x)
-
-    @checked.defjvp
-    def _(primals, tangents):
-        return checked(*primals), tangents[0]
-
-    return checked(x, flags)
 
 
 def batch_member_checks(system, q0, v0) -> None:

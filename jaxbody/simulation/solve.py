@@ -17,6 +17,7 @@ import optimistix as optx
 from .. import maggi
 from .._util import is_concrete
 from ..scene import Event
+from ..validation import raise_if_any
 from .adjoint import choose_adjoint, step_bound
 from .checks import (
     batch_member_checks,
@@ -24,7 +25,6 @@ from .checks import (
     checked_save_times,
     concrete_constraint_check,
     concrete_value_checks,
-    raise_if_any,
     scene_constraints,
     traced_constraint_check,
     traced_position_check,
