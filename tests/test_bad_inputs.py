@@ -8,11 +8,13 @@ runs the same table and counts clear, misleading, silent and crashing answers.
 
 import re
 
+import equinox as eqx
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import jaxbody as jb
-from _support.bad_inputs import all_cases, batch_solution, dense_solution, first_line, solved, tmpfile
+from _support.bad_inputs import all_cases, batch_solution, dense_solution, first_line, pendulum, solved, tmpfile
 
 CASES = all_cases()
 
@@ -82,3 +84,47 @@ def test_evaluate_inside_the_solved_interval_still_works():
     sol = dense_solution()
     q, _ = sol.evaluate(0.1)
     np.testing.assert_allclose(np.asarray(q), np.asarray(sol.q_final), rtol=1e-10)
+
+
+# ------------------------------------------------------------------------------ why a solve failed
+class _Chart(eqx.Module):
+    """A system whose coordinates degenerate at q = 0 (acceleration 1/q): a singular chart."""
+
+    nq = 1
+    nv = 1
+
+    def qdot(self, q, v):
+        return v
+
+    def acceleration(self, t, q, v, tau=None):
+        return 1.0 / q
+
+
+def _code(item):
+    from jaxbody.simulation.solution import result_code
+
+    return int(np.asarray(result_code(item)))
+
+
+def test_a_failure_is_diagnosed_at_the_state_where_the_solve_stopped():
+    from jaxbody.simulation.failures import diagnose
+
+    one, zero = jnp.ones(1), jnp.zeros(1)
+    steps = _code(jb.RESULTS.max_steps_reached)
+    # finite forces, infinite accelerations: the equations are singular there
+    chart = jb.scene(_Chart())
+    why = diagnose(chart, 0.0, zero, zero, steps, 64, 0.0, 1.0)
+    assert "singular" in why and "coordinate chart" in why
+    # 64 steps that advanced the solve by a nanosecond: the step size collapsed
+    why = diagnose(chart, 1e-9, one, zero, steps, 64, 0.0, 1.0)
+    assert why.startswith("the step size collapsed") and "kvaerno5" in why and "max_steps will not help" in why
+    # a long motion that simply needs more steps
+    why = diagnose(chart, 0.5, one, zero, steps, 64, 0.0, 1.0)
+    assert why.startswith("the step budget ran out") and "increase max_steps" in why
+    # a mass matrix that is not positive definite (a massless moving body set inside the solve)
+    model = eqx.tree_at(lambda m: m.body_mass, pendulum(), jnp.zeros(1))
+    model = eqx.tree_at(lambda m: m.body_inertia, model, jnp.zeros((1, 3, 3)))
+    scene = jb.scene(pendulum())
+    scene = eqx.tree_at(lambda s: s.system, scene, model)
+    why = diagnose(scene, 0.0, jnp.array([0.3]), zero, steps, 64, 0.0, 1.0)
+    assert "mass matrix is not positive definite" in why
