@@ -118,7 +118,8 @@ def simulate_scene(
             batch_member_checks(scene, q0, v0)
         checks = value_checks(scene, q0, v0)
         if constrained is not None:
-            checks.append(traced_position_check(constrained, t0, q0))
+            if not project_initial:
+                checks.append(traced_position_check(constrained, t0, q0))
             bad, msg = traced_constraint_check(constrained, t0, q0, v0)
             if project_initial:
                 # projected only where the check failed, so an admissible v0 passes bit for bit
