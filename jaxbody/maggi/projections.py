@@ -125,6 +125,7 @@ def constrain(
         base=base, constraints=constraints, epsilon=epsilon, free=tuple(range(base.nv)),
         baumgarte=jnp.asarray(baumgarte, dtype), repartitioning=bool(repartition), partition_tolerance=tol,
     )
+    check_constraints(system, q_ref, x_ref, t_ref)
     if position_atol is not None:
         # a reference off the constraints would choose the partition and check the rows at a
         # configuration the mechanism cannot reach
@@ -136,7 +137,6 @@ def constrain(
                 f"(position residuals {[float(phi[i]) for i in off]}, admissible {position_atol:g}); give a "
                 "configuration on them (jaxbody.maggi.project_positions projects one)"
             )
-    check_constraints(system, q_ref, x_ref, t_ref)
     if epsilon is None:
         system = system.repartition(q_ref, x_ref, t_ref)
     else:
