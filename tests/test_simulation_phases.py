@@ -450,10 +450,8 @@ def test_max_steps_failure_under_jit_says_when_and_where():
                 rf".*\n  state at the failure: q = \[{float(soft.q_final[0]):.6g}")
     with pytest.raises(Exception, match=expected):
         jax.block_until_ready(jax.jit(lambda q: jb.simulate(m, q, v0, 2.0, **kw).q)(q0))
-    # eagerly: a SimulationError at the same time and state, its reason diagnosed there
-    eager = (rf"simulate: the solve failed at t = {t_fail:.6g}: the step budget ran out: max_steps = 5 steps"
-             rf".*\n  state at the failure: q = \[{float(soft.q_final[0]):.6g}")
-    with pytest.raises(jb.SimulationError, match=eager):
+    # eagerly: the same text as a SimulationError
+    with pytest.raises(jb.SimulationError, match=expected):
         jb.simulate(m, q0, v0, 2.0, **kw)
 
     # a vmapped batch names the member that failed: the stiff one needs far more than 200 steps
