@@ -180,13 +180,16 @@ class ModelBuilder:
             raise ValueError(
                 f"body {name!r}: inertia must have 3, 6 or 3x3 values, got shape {I.shape}"
             )
+        quat = _check_finite(quat, f"body {name!r} quat")
+        if quat.shape != (4,) or not np.linalg.norm(quat) > 1e-12:
+            raise ValueError(f"body {name!r}: quat must be a non-zero quaternion (w, x, y, z), got {quat.tolist()}")
         for j in joints:
             if not isinstance(j, JointSpec):
                 raise ValueError(f"body {name!r}: joints must be Hinge/Slide/Ball/Free, got {j!r}")
         self._bodies.append(
             dict(
                 name=name, parent=pidx, pos=_check_finite(pos, f"body {name!r} pos"),
-                quat=_check_finite(quat, f"body {name!r} quat"),
+                quat=quat,
                 mass=float(_check_finite(mass, f"body {name!r} mass")),
                 com=_check_finite(com, f"body {name!r} com"), inertia=I, joints=list(joints),
             )

@@ -22,11 +22,21 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax import lax
 
 from ._util import check_shape, is_concrete
-from .joints import HINGE, SLIDE
+from .joints import HINGE, JOINT_KINDS, SLIDE
 
-__all__ = ["check_inputs", "validate_parameters", "validate_planar"]
+__all__ = [
+    "check_inputs",
+    "validate_parameters",
+    "validate_planar",
+    "validate_at_boundary",
+    "check_batch_members",
+    "raise_if_any",
+    "zero_quaternions",
+    "check_quaternions",
+]
 
 # moving bodies need more than this (MuJoCo's compiler uses mjMINVAL = 1e-15)
 _MINVAL = 1e-15
@@ -191,6 +201,122 @@ def validate_parameters(model, rtol: float = 1e-9) -> None:
             raise ValueError(f"body {k} ({bn[k]!r}): body_quat is zero")
 
 
+def validate_at_boundary(model) -> None:
+    """:func:`validate_parameters` of a model that arrives at a scene or a solve, when its values
+    are concrete: parameters set after building (``eqx.tree_at``) get the builder's checks.
+
+    Skipped for traced parameters (inside ``jit``/``vmap``/``grad``, where the traced checks of
+    :func:`check_inputs` and of the solve apply) and for a model whose arrays carry a batch axis
+    (one model per member of a batch)."""
+    if not is_concrete(model) or np.ndim(model.body_mass) != 1:
+        return
+    validate_parameters(model)
+
+
+def batch_members(x):
+    """The members ``(batch, ...)`` of ``x`` when it is an input batched by an eager ``jax.vmap``
+    (its values concrete, only the batch axis traced), else ``None``. Lets a boundary check name
+    the batch member at fault in a plain Python error, before anything runs."""
+    val, axis = getattr(x, "val", None), getattr(x, "batch_dim", None)
+    if type(x).__name__ != "BatchTracer" or not isinstance(axis, int) or not is_concrete(val):
+        return None
+    return np.moveaxis(np.asarray(val), axis, 0)
+
+
+def check_batch_members(inputs: dict, prefix: str = "") -> None:
+    """``ValueError`` naming the input and the first batch member that holds NaN or inf, for the
+    inputs of an eager ``jax.vmap`` (see :func:`batch_members`; others are skipped)."""
+    for name, x in inputs.items():
+        members = batch_members(x)
+        if members is None or members.ndim < 1:
+            continue
+        bad = ~np.all(np.isfinite(members.reshape(members.shape[0], -1)), axis=1)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise ValueError(f"{prefix}{name} contains NaN or inf (batch member {i} of {members.shape[0]})")
+
+
+def raise_if_any(x, checks):
+    """``x``, unchanged, after the traced ``checks`` ``[(bad, message)]``: when one fails the
+    program raises a ``ValueError`` with that check's message and, under ``vmap``, the first
+    batch member that failed it (``q0 contains NaN or inf (batch member 1 of 3)``).
+
+    Like the failure report of a solve, the check is a ``lax.cond`` on "any member failed" whose
+    failing branch calls back to the host and raises there (inside ``jit`` JAX re-raises it as its
+    runtime error, with this text after its own first line). Tangents pass through unchanged."""
+    if not checks:
+        return x
+    flags = jnp.stack([jnp.asarray(b) for b, _ in checks], axis=-1)
+    messages = tuple(m for _, m in checks)
+
+    def report(flags, x):
+        f = np.asarray(flags)
+        flat = f.reshape(-1, f.shape[-1])
+        i = int(np.flatnonzero(flat.any(axis=1))[0])
+        j = int(np.flatnonzero(flat[i])[0])
+        member = f" (batch member {i} of {flat.shape[0]})" if f.ndim > 1 else ""
+        raise ValueError(messages[j] + member)
+
+    @jax.custom_jvp
+    def checked(x, flags):
+        def fail():
+            return jax.pure_callback(report, jax.ShapeDtypeStruct(x.shape, x.dtype), flags, x,
+                                     vmap_method="broadcast_all")
+
+        # one predicate for a whole vmapped batch: the failing branch runs only when some member failed
+        return lax.cond(eqx.internal.unvmap_any(jnp.any(flags)), fail, lambda: x)
+
+    @checked.defjvp
+    def _(primals, tangents):
+        return checked(*primals), tangents[0]
+
+    return checked(x, flags)
+
+
+def zero_axes(model) -> list[int]:
+    """The hinge and slide joints of ``model`` whose axis is zero (concrete values)."""
+    axes = np.asarray(model.joint_axis)
+    types = np.asarray(model.joints.type)
+    norms = np.linalg.norm(axes.reshape(-1, 3), axis=-1)
+    return [int(j) for j in np.flatnonzero(((types == SLIDE) | (types == HINGE)) & (norms < 1e-12))]
+
+
+def quaternion_slices(model) -> list[tuple[int, int]]:
+    """``[(joint, offset in q)]`` of every ball and free joint's unit quaternion."""
+    joints = model.joints
+    out = []
+    for j, code in enumerate(joints.type):
+        off = JOINT_KINDS[code].quaternion
+        if off is not None:
+            out.append((j, int(joints.qposadr[j]) + off))
+    return out
+
+
+def zero_quaternions(model, q) -> list[tuple[int, float]]:
+    """``[(joint, norm)]`` of the ball/free joints whose quaternion in ``q`` (concrete, ``(nq,)``)
+    has zero norm: no rotation is defined by it (normalising it gives NaN)."""
+    q = np.asarray(q, dtype=np.float64)
+    out = []
+    for j, a in quaternion_slices(model):
+        n = float(np.linalg.norm(q[a:a + 4]))
+        if not n > 1e-12 and np.isfinite(n):
+            out.append((j, n))
+    return out
+
+
+def check_quaternions(model, q, name: str = "q") -> None:
+    """``ValueError`` naming the first ball/free joint whose quaternion in ``q`` is zero."""
+    bad = zero_quaternions(model, q)
+    if bad:
+        j, _ = bad[0]
+        a = dict(quaternion_slices(model))[j]
+        raise ValueError(
+            f"{name}: joint {j} ({model.joints.names[j]!r}): its quaternion {name}[{a}:{a + 4}] is zero "
+            f"({np.asarray(q)[a:a + 4].tolist()}); a rotation needs a non-zero quaternion (w, x, y, z), "
+            "e.g. (1, 0, 0, 0)"
+        )
+
+
 def validate_planar(system) -> None:
     """Check the parameters of a planar system on concrete values (see :func:`validate_parameters`).
 
@@ -321,11 +447,19 @@ def check_inputs(system, *, q=None, v=None, tau=None, a=None, external=None) -> 
         for name, bad in bad_inputs.items():
             if bool(bad):
                 raise ValueError(f"{name} contains NaN or inf")
+        if not _is_planar(system):
+            # a zero axis (set after building) gives NaN or a singular mass matrix, silently
+            for j in zero_axes(system)[:1]:
+                raise ValueError(f"joint {j} ({system.joints.names[j]!r}): joint_axis is zero")
+            if "q" in given:
+                check_quaternions(system, given["q"])
         return (system, *given.values())
+    if is_concrete(system):
+        # an eager vmap over the inputs: a plain error naming the member, before anything runs
+        check_batch_members(given)
     flags, msgs = _parameter_check(system)
     bad_inputs = _nonfinite_inputs(given)
     system = eqx.branched_error_if(system, jnp.any(flags), jnp.argmax(flags), msgs)
-    out = [
-        eqx.error_if(x, bad_inputs[name], f"{name} contains NaN or inf") for name, x in given.items()
-    ]
+    # through a host callback, so that under vmap the message names the batch member at fault
+    out = [raise_if_any(x, [(bad_inputs[name], f"{name} contains NaN or inf")]) for name, x in given.items()]
     return (system, *out)

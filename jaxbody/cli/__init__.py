@@ -21,6 +21,7 @@ the command turns on float64 (``jax_enable_x64``) globally.
 
 import argparse
 import os
+import re
 import sys
 
 from .. import __version__
@@ -68,5 +69,18 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as e:  # never a traceback on the command line, unless asked for
         if os.environ.get("JAXBODY_DEBUG"):
             raise
-        error_line(args.command, f"{type(e).__name__}: {e}")
+        error_line(args.command, _message(e))
         return 1
+
+
+def _message(err: Exception) -> str:
+    """What an unexpected error says, without a traceback: JAX's runtime errors (from a check or
+    a failure inside a compiled program) carry the text of the exception raised inside it after
+    a traceback and a banner; that exception's own line is the message."""
+    text = str(err)
+    if "Traceback (most recent call last)" in text:
+        raised = re.findall(r"^(?:[\w.]+\.)?(\w*(?:Error|Exception)): (.+)$", text, flags=re.M)
+        if raised:
+            name, message = raised[-1]
+            return f"{name.lstrip('_')}: {message}"
+    return f"{type(err).__name__}: {text}"

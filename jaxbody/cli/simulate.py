@@ -13,7 +13,7 @@ import time
 import jax.numpy as jnp
 import numpy as np
 
-from ..simulation import RESULTS, simulate
+from ..simulation import RESULTS, explain_failure, simulate
 from .arguments import (
     SOURCE_HELP,
     UsageError,
@@ -90,13 +90,6 @@ def _simulate_chunk(system, q, v, ts, args, continued=False):
     return simulate(system, q, v, ts[-1], t0=ts[0], solver=args.solver, rtol=args.rtol,
                     atol=args.atol, dt0=args.dt, saveat=ts, max_steps=args.max_steps,
                     throw=False, project_initial=continued)
-
-
-def _result_message(result) -> str:
-    try:
-        return RESULTS[result]
-    except Exception:  # pragma: no cover - message lookup is best effort
-        return str(result)
 
 
 class TrajectoryFiles:
@@ -229,7 +222,7 @@ def run(args) -> int:
                 keep[0] = False
             if not ok:
                 keep &= np.cumprod(keep | (np.arange(len(t)) == 0)).astype(bool)
-                failure = _result_message(sol.result)
+                failure = explain_failure(scene, sol, ts[0], ts[-1])
             is_last = k == len(chunks) - 1
             status = "failed" if not ok else ("complete" if is_last else "running")
             files.append(t[keep], qs[keep], vs[keep], None if energy is None else energy[keep], status)

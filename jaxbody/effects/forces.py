@@ -14,7 +14,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+import numpy as np
+
 from .._types import Array, Float
+from .._util import is_concrete
 from ..kernels import spring_displacements
 from ._base import Effect, EffectContext
 
@@ -83,6 +86,7 @@ class JointSprings(Effect):
             raise ValueError(f"springs: stiffness has shape {self.stiffness.shape}, expected ({scene.model.n_joint},)")
         if self.reference.shape != (scene.nq,):
             raise ValueError(f"springs: reference has shape {self.reference.shape}, expected ({scene.nq},)")
+        _check_coefficients("springs", "stiffness", self.stiffness, scene.model.joints.names, None)
 
 
 class JointDampers(Effect):
@@ -97,6 +101,22 @@ class JointDampers(Effect):
     def check(self, scene):
         if self.damping.shape != (scene.nv,):
             raise ValueError(f"dampers: damping has shape {self.damping.shape}, expected ({scene.nv},)")
+        joints = scene.model.joints if hasattr(scene, "model") and hasattr(scene.model, "joints") else None
+        _check_coefficients("dampers", "damping", self.damping, joints.names if joints else None,
+                            joints.dof_joint if joints else None)
+
+
+def _check_coefficients(effect, field, values, joint_names, dof_joint):
+    """A spring stiffness or a damping coefficient must be finite and non-negative (a negative
+    one feeds energy in without bound); checked on concrete values, naming the joint."""
+    if not is_concrete(values) or np.ndim(values) != 1:
+        return
+    a = np.asarray(values, dtype=np.float64)
+    for i in np.flatnonzero(~np.isfinite(a) | (a < 0))[:1]:
+        j = int(dof_joint[i]) if dof_joint is not None else int(i)
+        who = f"joint {j} ({joint_names[j]!r})" if joint_names is not None else f"entry {i}"
+        what = "is not finite (NaN or inf)" if not np.isfinite(a[i]) else "is negative"
+        raise ValueError(f"{effect}: {who}: {field} {what} ({a[i]})")
 
 
 class ControlSignal(eqx.Module):

@@ -74,6 +74,7 @@ def constrain(
     baumgarte: float = 10.0,
     repartition: bool = True,
     partition_tolerance: float = 0.1,
+    position_atol: float | None = 1e-6,
 ) -> ConstrainedSystem:
     """Add constraints to a base system (docs/maggi.md §3–4).
 
@@ -91,9 +92,13 @@ def constrain(
         partition_tolerance: in ``(0, 1)``; the partition degrades when its quality falls
             below this fraction of the quality of the best (pivoted-QR) partition at the
             current state (docs/maggi.md §4).
+        position_atol: largest admissible position residual ``|φ(t_ref, q_ref)|`` of the holonomic
+            rows at the reference state (``None``: not checked, for a reference that is only a
+            default configuration, such as a model's ``qpos0``).
 
     Raises:
-        ValueError: redundant or inconsistent constraints at the reference state, an
+        ValueError: ``q_ref`` off the holonomic constraints (naming the rows), redundant or
+            inconsistent constraints at the reference state, an
             ``epsilon`` of the wrong size / not completing ``f*`` to an invertible set, or a
             ``partition_tolerance`` outside ``(0, 1)``.
     """
@@ -121,6 +126,17 @@ def constrain(
         baumgarte=jnp.asarray(baumgarte, dtype), repartitioning=bool(repartition), partition_tolerance=tol,
     )
     check_constraints(system, q_ref, x_ref, t_ref)
+    if position_atol is not None:
+        # a reference off the constraints would choose the partition and check the rows at a
+        # configuration the mechanism cannot reach
+        phi = np.asarray(system.position_residual(t_ref, q_ref))
+        off = np.flatnonzero(np.abs(phi) > position_atol)
+        if off.size:
+            raise ValueError(
+                f"constrain: q_ref violates the constraints {[system.constraint_names[i] for i in off]} "
+                f"(position residuals {[float(phi[i]) for i in off]}, admissible {position_atol:g}); give a "
+                "configuration on them (jaxbody.maggi.project_positions projects one)"
+            )
     if epsilon is None:
         system = system.repartition(q_ref, x_ref, t_ref)
     else:

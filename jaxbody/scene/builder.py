@@ -28,6 +28,7 @@ from .._util import is_concrete
 from ..backends import KERNELS
 from ..planar import aligned_system
 from ..model import Model
+from ..validation import validate_at_boundary
 from .base import Scene
 from .planar import PlanarScene
 from .spatial import SpatialScene
@@ -128,6 +129,8 @@ def scene(
         return out
 
     model = system
+    # parameters set after building (eqx.tree_at) get the builder's checks before a solve sees them
+    validate_at_boundary(model)
     dtype = model.body_pos.dtype
     if isinstance(constraints, str) and constraints == "model":
         constraints = loop_closures(model) if model.loops else None
@@ -163,6 +166,8 @@ def scene(
     if actuation is not None:
         declared.append(_actuation(actuation))
     if loads is not None:
+        if not (isinstance(loads, BodyLoads) or callable(loads)):
+            raise ValueError(f"scene: loads must be a callable wrench(t, q, v) or a BodyLoads, got {type(loads).__name__}")
         declared.append(loads if isinstance(loads, BodyLoads) else BodyLoads(loads))
     if support is not None:
         declared.append(support if isinstance(support, SupportMotion) else SupportMotion(support))
@@ -206,7 +211,8 @@ def _constraint_slot(model: Model, constraints):
                 "equinox.tree_at(lambda s: s.system.<field>, scene, value)"
             )
         try:
-            constraints = maggi.constrain(model, constraints, q_ref=model.qpos0)
+            # qpos0 is a default, not a state on the constraints: positions are checked at t0
+            constraints = maggi.constrain(model, constraints, q_ref=model.qpos0, position_atol=None)
         except ValueError as err:
             raise ValueError(
                 f"scene: constraints: {err} (they were checked at model.qpos0; pass "

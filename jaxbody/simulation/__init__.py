@@ -56,6 +56,7 @@ guard), :mod:`~jaxbody.simulation.field` (the vector field), :mod:`~jaxbody.simu
 
 from .adjoint import CHECKPOINT_BYTES as CHECKPOINT_BYTES, default_checkpoints as default_checkpoints
 from .batch import simulate_batch as simulate_batch
+from .failures import explain_failure as explain_failure
 from .integrate import DynamicalSystem as DynamicalSystem, simulate as simulate
 from .partitioning import (
     PartitionSolver as PartitionSolver,

@@ -11,6 +11,7 @@ effects carry parameters of their own, a protocol system has any fields), so the
 check here runs over every inexact leaf of the scene, and its messages name the leaf's path.
 """
 
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -18,17 +19,28 @@ import numpy as np
 
 from .. import maggi
 from .._util import is_concrete
+from ..effects import JointDampers, JointSprings
 from ..model import Model
 from ..scene import Scene
+from ..validation import (
+    check_batch_members,
+    check_quaternions,
+    quaternion_slices,
+    validate_at_boundary,
+)
 
 __all__ = [
     "value_checks",
     "concrete_value_checks",
+    "checked_save_times",
+    "batch_member_checks",
+    "Q0_ATOL",
     "check_positive",
     "scene_constraints",
     "V0_ATOL",
     "concrete_constraint_check",
     "traced_constraint_check",
+    "traced_position_check",
 ]
 
 
@@ -49,9 +61,22 @@ def value_checks(system, q0, v0):
     for name, leaf in _param_leaves(system):
         checks.append((~jnp.all(jnp.isfinite(leaf)), f"simulate: parameter {name} contains NaN or inf"))
     model = system.system if isinstance(system, Scene) else system
-    # a negative mass gives an indefinite mass matrix: the solve would run and be meaningless
+    # a negative mass gives an indefinite mass matrix: the solve would run and be meaningless;
+    # negative stiffness, damping or armature feed energy in without bound
     if isinstance(model, Model):
-        checks.append((jnp.any(model.body_mass < 0), "simulate: parameter body_mass is negative"))
+        for field in ("body_mass", "joint_stiffness", "dof_damping", "dof_armature"):
+            checks.append((jnp.any(getattr(model, field) < 0), f"simulate: parameter {field} is negative"))
+        for j, a in quaternion_slices(model):
+            checks.append((
+                jnp.sum(q0[a:a + 4] ** 2) == 0,
+                f"simulate: q0: joint {j} ({model.joints.names[j]!r}): its quaternion q0[{a}:{a + 4}] is zero",
+            ))
+    if isinstance(system, Scene):
+        for eff in system.effects:
+            if isinstance(eff, JointDampers):
+                checks.append((jnp.any(eff.damping < 0), "simulate: dampers: a damping coefficient is negative"))
+            if isinstance(eff, JointSprings):
+                checks.append((jnp.any(eff.stiffness < 0), "simulate: springs: a stiffness is negative"))
     return checks
 
 
@@ -68,9 +93,60 @@ def concrete_value_checks(system, q0, v0):
             raise ValueError(f"simulate: parameter {name} contains NaN or inf")
     model = system.system if isinstance(system, Scene) else system
     if isinstance(model, Model):
-        bad = np.nonzero(np.asarray(model.body_mass) < 0)[0]
-        if bad.size:
-            raise ValueError(f"simulate: body {model.body_names[bad[0]]!r} has negative mass {float(model.body_mass[bad[0]])}")
+        # parameters set after building (eqx.tree_at) get the builder's checks
+        try:
+            validate_at_boundary(model)
+            check_quaternions(model, q0, "q0")
+        except ValueError as err:
+            raise ValueError(f"simulate: {err}") from None
+    if isinstance(system, Scene):
+        # a damping or stiffness changed on the scene itself (not through its model)
+        for eff in system.effects:
+            if isinstance(eff, (JointDampers, JointSprings)):
+                try:
+                    eff.check(system)
+                except ValueError as err:
+                    raise ValueError(f"simulate: {err}") from None
+
+
+def batch_member_checks(system, q0, v0) -> None:
+    """Under an eager ``jax.vmap`` over concrete initial states (``throw=True``): a plain
+    ``ValueError`` naming the input and the first batch member holding NaN or inf, raised before
+    anything is traced further (inside ``jit`` the traced checks apply instead)."""
+    if is_concrete(system):
+        check_batch_members({"q0": q0, "v0": v0}, prefix="simulate: ")
+
+
+def checked_save_times(saveat, t0, t1):
+    """``saveat`` with its times checked against ``[t0, t1]`` and for increasing order: with
+    concrete times a ``ValueError`` naming the first time at fault; traced ones carry an
+    ``eqx.error_if`` with the same rule (a usage error, raised whatever ``throw`` says).
+    (diffrax would otherwise stop with an internal check deep in its loop.)"""
+    sub = saveat.subs
+    if not isinstance(sub, diffrax.SubSaveAt) or sub.ts is None:
+        return saveat
+    ts = sub.ts
+    msg = "simulate: saveat times must be increasing and lie inside [t0, t1]"
+    if is_concrete(ts, t0, t1):
+        a, lo, hi = np.asarray(ts), float(np.asarray(t0)), float(np.asarray(t1))
+        # a few ulps of slack: linspace(t0, t1) in float32 may round its ends outwards
+        slack = 4 * np.finfo(a.dtype).eps * max(abs(lo), abs(hi), 1.0)
+        out = np.flatnonzero((a < lo - slack) | (a > hi + slack) | ~np.isfinite(a))
+        if out.size:
+            raise ValueError(
+                f"simulate: saveat time {a[out[0]]:g} (index {out[0]}) lies outside [t0, t1] = [{lo:g}, {hi:g}]; "
+                "save times must lie inside the solve's interval"
+            )
+        down = np.flatnonzero(np.diff(a) < 0)
+        if down.size:
+            raise ValueError(
+                f"simulate: saveat times must be increasing; time {a[down[0] + 1]:g} (index {down[0] + 1}) comes "
+                f"after {a[down[0]]:g}"
+            )
+        return saveat
+    bad = jnp.any(ts < t0) | jnp.any(ts > t1) | jnp.any(jnp.diff(ts) < 0)
+    ts = eqx.error_if(ts, bad, msg + " (a time lies outside [t0, t1] = the solve's interval, or they decrease)")
+    return eqx.tree_at(lambda s: s.subs.ts, saveat, ts)
 
 
 def check_positive(name, value, integer=False):
@@ -103,16 +179,32 @@ def scene_constraints(scene) -> "maggi.ConstrainedSystem | None":
     return cs
 
 
+# admissible position residual of q0 on the holonomic constraints (a length for loop closures):
+# positions off the constraints are not pulled back by the solve (Baumgarte only damps drift),
+# so a start off a loop would simulate another mechanism
+Q0_ATOL = 1e-6
 V0_ATOL = 1e-9  # admissible residual of v0, scaled by max(1, max|v0|) (as jaxbody.maggi.initial_state)
 
 
 def concrete_constraint_check(cs, t0, q0, v0, project_initial):
     """``(v0, correction)``: ``v0`` when it satisfies the constraints ``cs`` at ``(t0, q0)``,
-    else its projection (``project_initial``) or a ``ValueError`` naming the rows at fault;
+    else its projection (``project_initial``) or a ``ValueError`` naming the rows at fault. The
+    positions ``q0`` must lie on the holonomic rows (within :data:`Q0_ATOL`) unless
+    ``project_initial``;
     ``correction`` is the projection's change (``None`` without ``project_initial``)."""
     # the admissible case (the usual one) is decided by one compiled residual; otherwise
     # jaxbody.maggi.initial_state names the rows at fault or projects
-    f = np.asarray(_residual(cs, t0, q0, v0))
+    phi, f = (np.asarray(x) for x in _residual(cs, t0, q0, v0))
+    # checked unless a projection was asked for (a continued run starts from a solve's end,
+    # whose positions carry the integration's drift)
+    off = np.flatnonzero(np.abs(phi) > Q0_ATOL) if not project_initial else np.zeros(0, int)
+    if off.size:
+        names = [cs.constraint_names[i] for i in off]
+        raise ValueError(
+            f"simulate: q0: initial positions violate the constraints {names} (position residuals "
+            f"{[float(phi[i]) for i in off]}, admissible {Q0_ATOL:g}); start on the constraints, e.g. from "
+            "jaxbody.maggi.project_positions(constrained_system, q0)"
+        )
     scale = max(1.0, float(np.max(np.abs(np.asarray(v0)))))
     if np.all(np.abs(f) <= V0_ATOL * scale):
         return v0, (jnp.zeros_like(v0) if project_initial else None)
@@ -126,7 +218,18 @@ def concrete_constraint_check(cs, t0, q0, v0, project_initial):
 # compiled once per constraint structure: the eager check runs it on every concrete solve
 @eqx.filter_jit
 def _residual(cs, t, q, v):
-    return cs.constraint_residual(t, q, v)
+    return cs.position_residual(t, q), cs.constraint_residual(t, q, v)
+
+
+def traced_position_check(cs, t0, q0):
+    """``(bad, message)``: the initial positions' check of :func:`concrete_constraint_check` on
+    traced values (the holonomic rows' residuals ``φ(t0, q0)`` within :data:`Q0_ATOL`)."""
+    bad = jnp.any(jnp.abs(cs.position_residual(t0, q0)) > Q0_ATOL)
+    msg = (
+        f"simulate: q0: initial positions violate the constraints {list(cs.constraint_names)} (a position residual "
+        f"exceeds {Q0_ATOL:g}); start on the constraints, e.g. from jaxbody.maggi.project_positions"
+    )
+    return bad, msg
 
 
 def traced_constraint_check(cs, t0, q0, v0):

@@ -14,6 +14,7 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from .._types import Array, ArrayLike, Float, Scalar
+from .._util import is_concrete
 from ..effects import Actuation
 from ..model import Model
 from ..scene import Event, Phases, Scene, SystemScene, own_constraints, scene as build_scene
@@ -76,6 +77,8 @@ def as_scene(system, tau):
         t_arr = jnp.asarray(tau, jnp.result_type(float))
         if t_arr.shape != (system.nv,):
             raise ValueError(f"tau must have shape ({system.nv},) or be callable, got {t_arr.shape}")
+        if is_concrete(t_arr) and not bool(jnp.all(jnp.isfinite(t_arr))):
+            raise ValueError(f"simulate: tau contains NaN or inf: {t_arr.tolist()}")
         tau = _Constant(t_arr)
     act = Actuation(tau)
     act.check(system)

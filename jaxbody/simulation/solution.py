@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._types import Array, ArrayLike, Float
+from .._util import is_concrete
 from ..joints import JOINT_KIND_NAMES
 from ..model import Model
 from ..scene import Scene
@@ -30,6 +31,7 @@ __all__ = [
     "energy_balance",
     "balance_scale",
     "solution_layout",
+    "ran_by",
 ]
 
 
@@ -109,10 +111,22 @@ class Solution(eqx.Module):
             (changes of the constraints' coordinate partition, see
             :class:`jaxbody.simulation.PartitionSolver`; ``0`` without constraints).
         result: a :class:`RESULTS` code (``successful``; ``event_occurred`` when an event ended
-            the solve; a failure code otherwise).
+            the solve; a failure code otherwise), one per member of a batch: ``sol[i].result``
+            is member ``i``'s, :attr:`failed` the mask of failed members.
         t_final, q_final, v_final: where the solve stopped (``t1``, the event time, or the
             last step of a failed solve: with ``throw=False`` these are the failure's time and
-            state, the ones a ``throw=True`` error message quotes).
+            state, the ones a ``throw=True`` error message quotes). A member that failed the
+            boundary check (``invalid_input``) never started: ``t_final = t0`` and its states,
+            saved and final, are NaN.
+
+    After a terminating event, the saved times past the event are not reached: diffrax fills
+    their entries of ``t`` (and of ``q``, ``v``) with ``inf``, and energies and residuals there
+    are NaN; the state at the event is ``(t_final, q_final, v_final)``. Keep the saved entries
+    with ``np.isfinite(sol.t)``.
+
+    ``kernel`` and ``solver`` say what ran (the forward-dynamics kernel, or the scene's path when
+    no kernel runs directly, and the solver's name); ``solver_reason`` why that solver was chosen
+    when it was chosen automatically (empty otherwise).
         layout: static description of ``q``/``v`` (names, joint kinds, addresses) for replay.
         repartition_times: times at which the coordinate partition was re-chosen (the first
             ``jaxbody.simulation.partitioning.MAX_RECORDED_REPARTITIONS``, NaN in unused
@@ -145,14 +159,56 @@ class Solution(eqx.Module):
     interpolation: Any = None
     repartition_times: Any = None
     energy0: Float[Array, ""] | None = None
+    kernel: str = eqx.field(static=True, default="")
+    solver: str = eqx.field(static=True, default="")
+    solver_reason: str = eqx.field(static=True, default="")
 
     def evaluate(self, t: ArrayLike) -> tuple[Float[Array, " nq"], Float[Array, " nv"]]:
         """``(q, v)`` at any time ``t`` in ``[t0, t_final]`` from the solver's dense output
         (needs ``simulate(..., dense=True)``)."""
         if self.interpolation is None:
             raise ValueError("Solution.evaluate needs simulate(..., dense=True)")
+        t0, tf = self.interpolation.t0, self.t_final
+        if is_concrete(t, t0, tf) and np.ndim(tf) == 0:
+            # outside the solved interval the interpolation has nothing to give but NaN
+            ta, lo, hi = np.asarray(t), float(np.asarray(t0)), float(np.asarray(tf))
+            out = ta[(ta < lo) | (ta > hi) | ~np.isfinite(ta)] if ta.ndim else (
+                ta if not lo <= float(ta) <= hi else np.zeros(0))
+            if np.size(out):
+                raise ValueError(
+                    f"Solution.evaluate: t = {float(np.ravel(out)[0]):g} lies outside [t0, t_final] = [{lo:g}, {hi:g}], "
+                    "the interval the solve covered"
+                )
         y = self.interpolation.evaluate(t)
         return y[0], y[1]
+
+    @property
+    def batch_size(self) -> int | None:
+        """The number of members of a batched solution (``None`` for a single solve)."""
+        return None if jnp.ndim(self.t) == 1 else int(jnp.shape(self.t)[0])
+
+    def __len__(self) -> int:
+        n = self.batch_size
+        if n is None:
+            raise TypeError("a single solve's Solution has no length; len() counts the members of a batch")
+        return n
+
+    def __getitem__(self, i) -> "Solution":
+        """Member ``i`` of a batched solution (from ``jax.vmap`` or :func:`jaxbody.simulate_batch`)
+        as a :class:`Solution` of its own: its trajectory, result and final state."""
+        n = self.batch_size
+        if n is None:
+            raise TypeError("Solution is not batched: index a solution from jax.vmap or jaxbody.simulate_batch")
+        if isinstance(i, (int, np.integer)):
+            if not -n <= i < n:
+                raise IndexError(f"Solution: no batch member {i}; the batch has {n} members")
+            i = int(i) % n
+        return jax.tree.map(lambda x: x[i], self)
+
+    @property
+    def failed(self) -> jax.Array:
+        """Boolean mask of the members that failed (the negation of :attr:`success`)."""
+        return ~self.success
 
     @property
     def success(self) -> jax.Array:
@@ -230,6 +286,11 @@ class Solution(eqx.Module):
         layout (a ball or free joint's entries as ``q:<joint>.qw`` ... and ``v:<joint>.wx`` ...;
         ``q:q0``, ``v:v0`` ... for systems without joint names), then ``energy`` and ``work_<effect>``.
         """
+        if self.batch_size is not None:
+            raise ValueError(
+                f"Solution.to_csv writes one trajectory; this solution holds a batch of {self.batch_size} members: "
+                "write each with sol[i].to_csv(path)"
+            )
         lay = self._layout_dict()
         nq, nv = self.q.shape[-1], self.v.shape[-1]
         if "joint_names" in lay and "joint_kinds" in lay:
@@ -257,9 +318,26 @@ class Solution(eqx.Module):
 
 
 def load_solution(path) -> Solution:
-    """Read a solution written by :meth:`Solution.save`."""
+    """Read a solution written by :meth:`Solution.save` (``.npz``) or :meth:`Solution.to_csv`.
+
+    A CSV file holds the trajectory only: ``t``, ``q``, ``v``, the energy and the work; the
+    solution read from it has ``t_final``, ``q_final``, ``v_final`` from its last row, no
+    statistics, and ``result`` ``successful`` (``nonfinite`` when the last row is not finite).
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: a file that is neither a solution's ``.npz`` nor its CSV, naming the file.
+    """
+    with open(path, "rb") as fh:
+        head = fh.read(4)
+    # .npz files are zip archives; anything else is read as the CSV of Solution.to_csv
+    if head[:2] != b"PK":
+        return _load_csv(path)
     with np.load(path) as data:
         d = {k: data[k] for k in data.files}
+    missing = [k for k in ("t", "q", "v", "result", "t_final", "q_final", "v_final", "layout") if k not in d]
+    if missing:
+        raise ValueError(f"load_solution: {str(path)!r} is not a jaxbody solution file (Solution.save): it lacks {missing}")
     work = {k[5:]: jnp.asarray(v) for k, v in d.items() if k.startswith("work/")}
     stats = {k[6:]: jnp.asarray(v) for k, v in d.items() if k.startswith("stats/")}
     layout = json.loads(str(d["layout"]))
@@ -284,6 +362,44 @@ def load_solution(path) -> Solution:
         layout=tuple(sorted((k, _tuples(v)) for k, v in layout.items())),
         repartition_times=jnp.asarray(d["repartition_times"]) if "repartition_times" in d else None,
     )
+
+
+def _load_csv(path) -> Solution:
+    """The :class:`Solution` of a CSV written by :meth:`Solution.to_csv`."""
+    with open(path) as fh:
+        names = fh.readline().strip().split(",")
+    qi = [i for i, n in enumerate(names) if n.startswith("q:")]
+    vi = [i for i, n in enumerate(names) if n.startswith("v:")]
+    if not names or names[0] != "t" or not qi or not vi:
+        raise ValueError(
+            f"load_solution: {str(path)!r} is not a Solution.to_csv file: its first line must name the column "
+            f"'t' and then 'q:...' and 'v:...' columns, got {names[:6]}"
+        )
+    data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+    if data.shape[1] != len(names):
+        raise ValueError(f"load_solution: {str(path)!r}: {data.shape[1]} values per row for {len(names)} columns")
+    col = lambda i: jnp.asarray(data[:, i])  # noqa: E731
+    q, v = jnp.asarray(data[:, qi]), jnp.asarray(data[:, vi])
+    energy = col(names.index("energy")) if "energy" in names else None
+    work = {n[5:]: col(i) for i, n in enumerate(names) if n.startswith("work_")}
+    finite = bool(np.all(np.isfinite(data[-1])))
+    return Solution(
+        t=col(0), q=q, v=v, energy=energy, work=work, energy_drift=None, constraint_drift=None, reactions=None,
+        stats={}, result=RESULTS.successful if finite else RESULTS.nonfinite, t_final=col(0)[-1],
+        q_final=q[-1], v_final=v[-1],
+        layout=(("csv_columns", tuple(names)),),
+    )
+
+
+def ran_by(scene, solver) -> dict:
+    """The ``kernel`` and ``solver`` fields of a solution of ``scene``: the forward-dynamics
+    kernel that ran (the scene's path when none runs directly) and the solver's name."""
+    try:
+        kernel = scene.direct_kernel() or scene.path
+    except Exception:  # noqa: BLE001 (a description must not stop a solve)
+        kernel = ""
+    name = solver if isinstance(solver, str) else type(solver).__name__
+    return {"kernel": str(kernel or ""), "solver": name}
 
 
 def _tuples(x):

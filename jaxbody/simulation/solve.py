@@ -17,19 +17,23 @@ import optimistix as optx
 from .. import maggi
 from .._util import is_concrete
 from ..scene import Event
+from ..validation import raise_if_any
 from .adjoint import choose_adjoint, step_bound
 from .checks import (
+    batch_member_checks,
     check_positive,
+    checked_save_times,
     concrete_constraint_check,
     concrete_value_checks,
     scene_constraints,
     traced_constraint_check,
+    traced_position_check,
     value_checks,
 )
-from .failures import raise_on_failure
+from .failures import mark_invalid, raise_on_failure
 from .field import VectorField
 from .native_solve import native_or_stepped, native_reverse, native_solve, native_solve_applies, native_solve_enabled
-from .solution import RESULTS, Solution, balance_scale, energy_balance, solution_layout
+from .solution import RESULTS, Solution, balance_scale, energy_balance, ran_by, solution_layout
 from .partitioning import PartitionSolver, partition_report, partition_solver, with_best_partition
 from .solvers import Guarded, apply_failure, choose_solver, failure_record, for_adjoint, recording_depth
 
@@ -86,6 +90,7 @@ def simulate_scene(
     # output has its own argument and nested saves have no place in a Solution
     if saveat.dense or saveat.subs is not None and not isinstance(saveat.subs, diffrax.SubSaveAt):
         raise ValueError("simulate: pass dense=True instead of SaveAt(dense=True); nested subs are not supported")
+    saveat = checked_save_times(saveat, t0, t1)
     adjoint = choose_adjoint(adjoint)
     if isinstance(controller, (diffrax.ConstantStepSize, diffrax.StepTo)) and not isinstance(
         adjoint, diffrax.BacksolveAdjoint
@@ -109,8 +114,12 @@ def simulate_scene(
             v0, correction = concrete_constraint_check(constrained, t0, q0, v0, project_initial)
         valid = None
     else:
+        if throw:
+            batch_member_checks(scene, q0, v0)
         checks = value_checks(scene, q0, v0)
         if constrained is not None:
+            if not project_initial:
+                checks.append(traced_position_check(constrained, t0, q0))
             bad, msg = traced_constraint_check(constrained, t0, q0, v0)
             if project_initial:
                 # projected only where the check failed, so an admissible v0 passes bit for bit
@@ -120,8 +129,7 @@ def simulate_scene(
             else:
                 checks.append((bad, msg))
         if throw:
-            for bad, msg in checks:
-                q0 = eqx.error_if(q0, bad, msg)
+            q0 = raise_if_any(q0, checks)
             valid = None
         else:
             valid = ~jnp.any(jnp.stack([b for b, _ in checks]))
@@ -148,10 +156,11 @@ def simulate_scene(
                           native_solve_enabled())
     if correction is not None:
         sol = dataclasses.replace(sol, stats={**sol.stats, "v0_correction": correction})
+    sol = dataclasses.replace(sol, **ran_by(scene, solver))
     if valid is not None:
-        sol = eqx.tree_at(lambda s: s.result, sol, RESULTS.where(valid, sol.result, RESULTS.invalid_input))
+        sol = mark_invalid(sol, valid, t0)
     if throw:
-        sol = raise_on_failure(sol)
+        sol = raise_on_failure(sol, scene, t0, t1)
     return sol, w_final
 
 
