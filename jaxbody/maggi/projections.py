@@ -8,9 +8,11 @@ checks or projects an initial state; :func:`project_velocities` (kinetic metric)
 
 from collections.abc import Callable, Sequence
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.linalg
 from jax import lax
 
 from .. import linalg
@@ -33,12 +35,25 @@ def check_constraints(system: ConstrainedSystem, q, x=None, t=0.0, *, rtol: floa
     if s > n:
         raise ValueError(f"{s} constraints on {n} quasi-velocities: at least {s - n} are redundant")
     x = jnp.zeros((n,), jnp.asarray(q).dtype) if x is None else jnp.asarray(x)
+    G, f = _jacobian_and_residual(system, t, q, x)
+    _check_rows(G, f, x, system.constraint_names, rtol)
+
+
+# G and f* at the reference state from one compiled program: evaluated op by op, every
+# differentiated call of the kinematics would compile a program of its own
+@eqx.filter_jit
+def _jacobian_and_residual(system, t, q, x):
+    return system.constraint_jacobian(t, q, x), system.constraint_residual(t, q, x)
+
+
+def _check_rows(G, f, x, names, rtol):
+    """The rank test of :func:`check_constraints` on ``G`` and ``f*`` at the reference state."""
+    s, n = G.shape
     # a build-time check on the host, once and outside any trace: LAPACK's SVD in float64 is
     # safe here and gives the sharpest rank test
-    G = np.asarray(system.constraint_jacobian(t, q, x), dtype=np.float64)
+    G = np.asarray(G, dtype=np.float64)
     # affine part at x = 0 for linear constraints: f* = G x + c
-    c = np.asarray(system.constraint_residual(t, q, x), dtype=np.float64) - G @ np.asarray(x)
-    names = system.constraint_names
+    c = np.asarray(f, dtype=np.float64) - G @ np.asarray(x, dtype=np.float64)
     # rank tolerance relative to G's largest entry, so the rows' units do not matter; the
     # floor keeps an all-zero G comparable
     scale = max(np.abs(G).max(), 1e-300)
@@ -120,8 +135,15 @@ def constrain(
         base=base, constraints=constraints, epsilon=epsilon, free=tuple(range(base.nv)),
         baumgarte=jnp.asarray(baumgarte, dtype), repartitioning=bool(repartition), partition_tolerance=tol,
     )
-    check_constraints(system, q_ref, x_ref, t_ref)
-    if epsilon is None:
+    if system.n_constraint > base.nv:
+        check_constraints(system, q_ref, x_ref, t_ref)  # raises: more rows than velocities
+    G, f = _jacobian_and_residual(system, t_ref, q_ref, x_ref) if system.n_constraint else (None, None)
+    if G is not None:
+        _check_rows(G, f, x_ref, system.constraint_names, 1e-9)
+    if epsilon is None and G is not None and system.partitioned:
+        # the partition from the same G (column-pivoted QR): no second program to compile
+        system = system.with_partition(_free_columns(np.asarray(G, np.float64)))
+    elif epsilon is None:
         system = system.repartition(q_ref, x_ref, t_ref)
     else:
         n_eps = int(np.prod(jax.eval_shape(lambda: epsilon(base, t_ref, q_ref, x_ref)).shape))
@@ -137,6 +159,15 @@ def constrain(
                 f"(ε, f*) at the reference state (pivot ratio {float(ratio):.3g})"
             )
     return system
+
+
+def _free_columns(G) -> tuple[int, ...]:
+    """The free quasi-velocities of the coordinate partition at ``G`` (s, n): the columns a
+    column-pivoted QR (Businger–Golub, LAPACK ``geqp3``) does not take as pivots, ascending
+    (the choice :func:`jaxbody.maggi.constrained.pivoted_free` makes inside a solve)."""
+    s, n = G.shape
+    pivots = scipy.linalg.qr(G, pivoting=True, mode="r")[1]
+    return tuple(sorted(int(i) for i in pivots[s:]))
 
 
 def project_velocities(system: ConstrainedSystem, q, x, t=0.0, *, iterations: int = 3):
