@@ -514,6 +514,8 @@ def loop_closures(model, *, axes="auto", q=None) -> tuple[LoopClosure, ...]:
                  for s, a, d in zip(specs, rows.axes, rows.dropped)]
     out = []
     for spec in specs:
+        if auto and spec.axes is not None and len(spec.axes) == 0:
+            continue  # every row repeats other loops' rows (LoopSpec.dropped says which)
         if auto:
             ax = spec.axes
             frame = spec.frame if spec.frame is not None else loop_frame(model.tree.parent, spec.body_a, spec.body_b)

@@ -259,7 +259,8 @@ def loop_rows(jacobians, labels: Sequence[str], frame_names: Sequence[str], *, r
     for i, a, r in rows:
         trial = np.stack([*kept, r])
         sv = np.linalg.svd(trial, compute_uv=False)
-        if sv[-1] <= rtol * scale * max(1.0, np.sqrt(J.shape[-1])):
+        # more rows than velocities, or a vanishing singular value: the row depends on the kept ones
+        if len(sv) < len(trial) or sv[-1] <= rtol * scale * max(1.0, np.sqrt(J.shape[-1])):
             coef = np.linalg.lstsq(np.stack(kept).T, r, rcond=None)[0] if kept else np.zeros(0)
             deps = sorted({names[j] for j, c in enumerate(coef) if abs(c) > 1e-9})
             dropped[i].append(f"along {_fmt(a)} in the frame of {frame_names[i]}: it depends on the rows "
@@ -268,7 +269,5 @@ def loop_rows(jacobians, labels: Sequence[str], frame_names: Sequence[str], *, r
         kept.append(r)
         final[i].append(a)
         names.append(f"{labels[i]}[{len(final[i]) - 1}]")
-    empty = [labels[i] for i, f in enumerate(final) if not f]
-    if empty:
-        raise ValueError(f"loops {empty}: every direction depends on other loops' rows; remove them")
-    return LoopRows([np.asarray(f) for f in final], [tuple(d) for d in dropped])
+    # a loop left with no row repeats the others entirely: it is kept with none (its report says so)
+    return LoopRows([np.asarray(f).reshape(-1, 3) for f in final], [tuple(d) for d in dropped])

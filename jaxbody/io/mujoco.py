@@ -126,7 +126,36 @@ def from_urdf(source, *, strict: bool = False, dtype=None) -> Model:
     jaxbody reports as not modelled). Arguments, returns, raises and warnings as in
     :func:`from_mjcf`.
     """
-    return _from_mujoco(compile_source(source, "from_urdf", "URDF"), strict, dtype, "from_urdf")
+    m = compile_source(source, "from_urdf", "URDF")
+    return _from_mujoco(m, strict, dtype, "from_urdf", extra=_urdf_ignored_elements(source))
+
+
+# What MuJoCo's URDF reader reads; any other element is skipped without a word, so it is reported
+_URDF_READ = {"robot": {"link", "joint", "material", "mujoco"}, "joint": {"origin", "parent", "child", "axis", "limit", "dynamics"}}
+
+
+def _urdf_ignored_elements(source) -> list[str]:
+    """One report line naming the URDF elements MuJoCo's URDF reader skips (``<gazebo>``,
+    ``<transmission>``, a joint's ``<mimic>`` ...), with their counts; empty when none."""
+    import xml.etree.ElementTree as ET
+
+    try:
+        text = source if isinstance(source, str) and source.lstrip().startswith("<") else pathlib.Path(source).read_text()
+        root = ET.fromstring(text)
+    except (OSError, ET.ParseError, UnicodeDecodeError):  # MuJoCo has read it: nothing more to say
+        return []
+    counts: dict[str, int] = {}
+    for child in root:
+        if isinstance(child.tag, str) and child.tag not in _URDF_READ["robot"]:
+            counts[f"<{child.tag}>"] = counts.get(f"<{child.tag}>", 0) + 1
+    for joint in root.iter("joint"):
+        for child in joint:
+            if isinstance(child.tag, str) and child.tag not in _URDF_READ["joint"]:
+                counts[f"<joint><{child.tag}>"] = counts.get(f"<joint><{child.tag}>", 0) + 1
+    if not counts:
+        return []
+    listed = ", ".join(f"{n} {tag}" for tag, n in sorted(counts.items()))
+    return [f"URDF elements MuJoCo's URDF reader skips (ignored): {sum(counts.values())} elements ({listed})"]
 
 
 def from_mujoco(mj_model, *, strict: bool = False, dtype=None) -> Model:
@@ -143,7 +172,7 @@ def from_mujoco(mj_model, *, strict: bool = False, dtype=None) -> Model:
     return _from_mujoco(mj_model, strict, dtype, "from_mujoco")
 
 
-def _from_mujoco(mj_model, strict: bool, dtype, _caller: str) -> Model:
+def _from_mujoco(mj_model, strict: bool, dtype, _caller: str, extra=()) -> Model:
     """:func:`from_mujoco`, with the public function's name (``_caller``) for messages."""
     dtype = _check_dtype(dtype, _caller)
     mujoco = _mujoco()
@@ -257,7 +286,7 @@ def _from_mujoco(mj_model, strict: bool, dtype, _caller: str) -> Model:
         model = Model(**{f.name: getattr(model, f.name) for f in dataclasses.fields(model) if f.name != "loops"},
                       loops=loops)
 
-    issues = unsupported_features(m)
+    issues = list(extra) + unsupported_features(m)
     if issues:
         lines = "\n".join(f"  - {s}" for s in issues)
         if strict:

@@ -17,6 +17,7 @@ from jax import lax
 
 from .. import linalg
 from .._types import ArrayLike
+from ..kinematics import integrate_qpos
 from ..model import Model
 from .constrained import ConstrainedSystem
 from .constraint import Constraint
@@ -198,9 +199,13 @@ def project_velocities(system: ConstrainedSystem, q, x, t=0.0, *, iterations: in
 
 
 def project_positions(system: ConstrainedSystem, q, t=0.0, *, iterations: int = 8):
-    """Newton's method with minimum-norm steps on the holonomic residuals ``φ(t, q) = 0``
-    (``q ← q − Jᵀ(JJᵀ)⁻¹φ``, ``J = ∂φ/∂q`` over the holonomic rows). Coordinates must be
-    plain (no quaternions). Returns the projected ``q``."""
+    """Newton's method with minimum-norm steps on the holonomic residuals ``φ(t, q) = 0``.
+
+    On a :class:`ModelBase` the steps are taken in the joint velocities and integrated on the
+    rotation group, so ball and free joints keep unit quaternions:
+    ``Δv = −Gᵀ(GGᵀ)⁻¹φ``, ``q ← integrate_qpos(q, Δv, 1)`` (``G = ∂f*/∂v = ∂φ/∂q · ∂q̇/∂v``
+    over the holonomic rows, since ``f* = dφ/dt``). On other bases the coordinates must be plain
+    (no quaternions): ``q ← q − Jᵀ(JJᵀ)⁻¹φ``, ``J = ∂φ/∂q``. Returns the projected ``q``."""
     rows = [i for i, ok in enumerate(_holonomic_mask(system)) if ok]
     q = jnp.asarray(q)
     if not rows:
@@ -210,13 +215,23 @@ def project_positions(system: ConstrainedSystem, q, t=0.0, *, iterations: int = 
     idx = jnp.asarray(rows, dtype=jnp.int32)
     phi = lambda qq: system.position_residual(t, qq)[idx]
 
+    if isinstance(system.base, ModelBase):
+        model = system.base.model
+        zero = jnp.zeros((system.nv,), q.dtype)
+
+        def step(_, qq):
+            G = system.constraint_jacobian(t, qq, zero)[idx]
+            return integrate_qpos(model, qq, -G.T @ linalg.solve_spd(G @ G.T, phi(qq)), 1.0)
+
+        return lax.fori_loop(0, iterations, step, q)
+
     # Newton iterations with minimum-norm steps (optimistix's Newton needs a square
     # system; its least-squares solvers call LAPACK, which is unsafe in CPU batches).
-    def step(_, qq):
+    def plain_step(_, qq):
         J = jax.jacfwd(phi)(qq)
         return qq - J.T @ linalg.solve_spd(J @ J.T, phi(qq))
 
-    return lax.fori_loop(0, iterations, step, q)
+    return lax.fori_loop(0, iterations, plain_step, q)
 
 
 def _holonomic_mask(system: ConstrainedSystem) -> list[bool]:
@@ -233,28 +248,47 @@ def _holonomic_mask(system: ConstrainedSystem) -> list[bool]:
     return mask
 
 
-def initial_state(system: ConstrainedSystem, q, x, t=0.0, *, project_initial: bool = False, atol: float = 1e-9):
+def initial_state(system: ConstrainedSystem, q, x, t=0.0, *, project_initial: bool = False, atol: float = 1e-9,
+                  position_atol: float = 1e-8):
     """Check (or project) an initial state against the constraints.
 
     Args:
         system: constrained system.
         q, x: initial coordinates and quasi-velocities.
-        project_initial: project ``x`` on the constraint manifold (kinetic metric) instead of
-            raising; the correction is returned.
+        project_initial: project ``q`` on the holonomic constraints (:func:`project_positions`)
+            and then ``x`` on all of them (kinetic metric, :func:`project_velocities`) instead of
+            raising; the velocity correction is returned.
         atol: admissible velocity residual ``max |f*|`` (scaled by ``max(1, |x|)``).
+        position_atol: admissible position residual ``max |φ|`` of the holonomic rows (scaled
+            by ``max(1, |q|)``).
 
     Returns:
         ``(q, x, correction)`` with ``correction = x_projected − x`` (zeros when not projected).
 
     Raises:
-        ValueError: the initial quasi-velocities violate the constraints, naming the rows.
+        ValueError: the initial coordinates or quasi-velocities violate the constraints, naming
+            the rows.
     """
     q = jnp.asarray(q)
     x = jnp.asarray(x, q.dtype)
+    names = system.constraint_names
+    hol = np.asarray(_holonomic_mask(system), bool)
+    if hol.any():
+        phi = np.where(hol, np.asarray(system.position_residual(t, q)), 0.0)
+        pscale = max(1.0, float(np.max(np.abs(np.asarray(q))))) if q.size else 1.0
+        off = np.flatnonzero(np.abs(phi) > position_atol * pscale)
+        if off.size and not project_initial:
+            raise ValueError(
+                f"initial positions violate the constraints {[names[i] for i in off]} (residuals "
+                f"{[float(phi[i]) for i in off]}); give coordinates that satisfy them or pass "
+                "project_initial=True"
+            )
+        if off.size:
+            q = project_positions(system, q, t)
     f = np.asarray(system.constraint_residual(t, q, x))
     # tolerance relative to the speed (floored at 1), so fast and slow states are judged alike
     scale = max(1.0, float(np.max(np.abs(np.asarray(x)))) if x.size else 1.0)
-    bad = [system.constraint_names[i] for i in np.flatnonzero(np.abs(f) > atol * scale)]
+    bad = [names[i] for i in np.flatnonzero(np.abs(f) > atol * scale)]
     if not bad:
         return q, x, jnp.zeros_like(x)
     if not project_initial:
