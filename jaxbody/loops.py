@@ -1,9 +1,9 @@
 """Loop closures a model carries: :class:`LoopSpec`.
 
-A spec is plain static data (bodies, body-frame points, constrained world directions), so it
-sits below the model, which holds a tuple of them (``Model.loops``). The directions a loop
-constrains are found from the model's kinematics by
-:func:`jaxbody.loop_directions.independent_loop_axes`; the constraints built from the specs are
+A spec is plain static data (bodies, body-frame points, the reference frame and the directions
+constrained in it, the directions dropped and why), so it sits below the model, which holds a
+tuple of them (``Model.loops``). The directions a loop constrains are found from the model's
+kinematics (:mod:`jaxbody.loop_directions`); the constraints built from the specs are
 :class:`jaxbody.constraints.LoopClosure` (:func:`jaxbody.constraints.loop_closures`).
 """
 
