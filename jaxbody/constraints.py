@@ -33,7 +33,7 @@ import numpy as np
 from ._types import Array, Float
 from .joints import HINGE, SLIDE
 from .kinematics import forward_kinematics, integrate_qpos, qpos_rate
-from .loop_directions import close_loops, gap_jacobians, loop_frame, loop_rows, point_gap, point_gap_velocity
+from .loop_directions import CLOSED_ATOL, close_loops, gap_jacobians, loop_frame, loop_rows, point_gap, point_gap_velocity
 from .maggi.constrained import ConstrainedSystem
 from .maggi.constraint import Constraint
 from .maggi.projections import constrain
@@ -463,10 +463,13 @@ def loop_reference(model, q=None, *, what: str | None = None) -> np.ndarray:
     if not model.loops:
         return q
     specs = _with_frames(model)
+    dtype = model.body_pos.dtype
+    # the kinematics run in the model's dtype: a float32 model closes its loops to its own rounding
+    atol = max(CLOSED_ATOL, 100 * float(jnp.finfo(dtype).eps) * max(1.0, float(np.abs(np.asarray(model.body_pos)).max())))
     return close_loops(
-        q, lambda qq: gap_jacobians(model, specs, jnp.asarray(qq, model.body_pos.dtype))[:2],
-        lambda qq, dv: integrate_qpos(model, jnp.asarray(qq), jnp.asarray(dv), 1.0),
-        what=what or ("qpos0" if q is None else "the given configuration"), labels=[s.label for s in specs],
+        q, lambda qq: gap_jacobians(model, specs, jnp.asarray(qq, dtype))[:2],
+        lambda qq, dv: integrate_qpos(model, jnp.asarray(qq, dtype), jnp.asarray(dv, dtype), 1.0),
+        atol=atol, what=what or ("qpos0" if q is None else "the given configuration"), labels=[s.label for s in specs],
     )
 
 
