@@ -299,7 +299,7 @@ def _on_constraints(scene, q0, v0, project):
     if not isinstance(cs, maggi.ConstrainedSystem) or cs.n_constraint == 0:
         return q0, v0, ""
     try:
-        q, v, dv = maggi.initial_state(cs, q0, v0, 0.0, project_initial=project)
+        q, v, dv = maggi.initial_state(cs, q0, v0, 0.0, project_initial=project, check_positions=True)
     except ValueError as e:
         raise UsageError(f"{one_line(e)} (or pass --project-initial)".replace(" or pass project_initial=True", "")) from None
     if not project:

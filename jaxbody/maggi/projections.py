@@ -249,7 +249,7 @@ def _holonomic_mask(system: ConstrainedSystem) -> list[bool]:
 
 
 def initial_state(system: ConstrainedSystem, q, x, t=0.0, *, project_initial: bool = False, atol: float = 1e-9,
-                  position_atol: float = 1e-8):
+                  position_atol: float = 1e-8, check_positions: bool = False):
     """Check (or project) an initial state against the constraints.
 
     Args:
@@ -261,13 +261,16 @@ def initial_state(system: ConstrainedSystem, q, x, t=0.0, *, project_initial: bo
         atol: admissible velocity residual ``max |f*|`` (scaled by ``max(1, |x|)``).
         position_atol: admissible position residual ``max |φ|`` of the holonomic rows (scaled
             by ``max(1, |q|)``).
+        check_positions: raise when ``q`` violates the holonomic constraints and
+            ``project_initial`` is off (by default only the velocities are checked here;
+            :func:`jaxbody.simulate` checks positions itself).
 
     Returns:
         ``(q, x, correction)`` with ``correction = x_projected − x`` (zeros when not projected).
 
     Raises:
-        ValueError: the initial coordinates or quasi-velocities violate the constraints, naming
-            the rows.
+        ValueError: the initial quasi-velocities (or, with ``check_positions``, coordinates)
+            violate the constraints, naming the rows.
     """
     q = jnp.asarray(q)
     x = jnp.asarray(x, q.dtype)
@@ -277,13 +280,13 @@ def initial_state(system: ConstrainedSystem, q, x, t=0.0, *, project_initial: bo
         phi = np.where(hol, np.asarray(system.position_residual(t, q)), 0.0)
         pscale = max(1.0, float(np.max(np.abs(np.asarray(q))))) if q.size else 1.0
         off = np.flatnonzero(np.abs(phi) > position_atol * pscale)
-        if off.size and not project_initial:
+        if off.size and check_positions and not project_initial:
             raise ValueError(
                 f"initial positions violate the constraints {[names[i] for i in off]} (residuals "
                 f"{[float(phi[i]) for i in off]}); give coordinates that satisfy them or pass "
                 "project_initial=True"
             )
-        if off.size:
+        if off.size and project_initial:
             q = project_positions(system, q, t)
     f = np.asarray(system.constraint_residual(t, q, x))
     # tolerance relative to the speed (floored at 1), so fast and slow states are judged alike
