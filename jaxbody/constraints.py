@@ -32,9 +32,11 @@ import numpy as np
 
 from ._types import Array, Float
 from .joints import HINGE, SLIDE
-from .kinematics import forward_kinematics, qpos_rate
-from .loop_directions import independent_loop_axes, point_gap, point_gap_velocity
+from .kinematics import forward_kinematics, integrate_qpos, qpos_rate
+from .loop_directions import CLOSED_ATOL, close_loops, gap_jacobians, loop_frame, loop_rows, point_gap, point_gap_velocity
+from .maggi.constrained import ConstrainedSystem
 from .maggi.constraint import Constraint
+from .maggi.projections import constrain
 
 __all__ = [
     "PointOnPlane",
@@ -50,6 +52,8 @@ __all__ = [
     "body_angular_velocity",
     "connect_constraints",
     "loop_closures",
+    "loop_system",
+    "loop_reference",
 ]
 
 
@@ -216,10 +220,11 @@ class PointOnLine(_PointOffset):
 
 
 class LoopClosure(Constraint):
-    """Point-to-point loop closure: ``p_a(q) − p_b(q)`` vanishes along ``axes`` (world unit
-    vectors; default all three). Give only the independent directions (a planar loop: the
-    two in-plane axes), otherwise the constraints are redundant. The reaction is the force
-    on the point of body ``a`` (body ``b`` feels the opposite)."""
+    """Point-to-point loop closure: the gap ``R_fᵀ (p_a(q) − p_b(q))`` vanishes along ``axes``
+    (unit vectors in the frame of body ``frame``; ``-1``, the default: world axes; default all
+    three). Give only the independent directions (a planar loop: the two in-plane axes),
+    otherwise the constraints are redundant; :func:`loop_closures` finds them. The reaction is
+    the force on the point of body ``a`` along each axis (body ``b`` feels the opposite)."""
 
     body_a: int = eqx.field(static=True)
     body_b: int = eqx.field(static=True)
@@ -227,9 +232,11 @@ class LoopClosure(Constraint):
     point_b: Array
     axes: Array
     label: str = eqx.field(static=True)
+    frame: int = eqx.field(static=True, default=-1)
 
-    def __init__(self, model, body_a, point_a, body_b, point_b, axes=None, label=None):
+    def __init__(self, model, body_a, point_a, body_b, point_b, axes=None, label=None, frame=-1):
         self.body_a, self.body_b = _body(model, body_a), _body(model, body_b)
+        self.frame = _body(model, frame)
         self.point_a = _vec(point_a, what="point_a")
         self.point_b = _vec(point_b, what="point_b")
         ax = np.eye(3) if axes is None else np.asarray(axes, dtype=np.float64).reshape(-1, 3)
@@ -251,10 +258,11 @@ class LoopClosure(Constraint):
     # both points from one evaluation of the frames: a solve differentiates these several
     # times, and each evaluation is a copy of forward kinematics in the compiled program
     def position(self, base, t, q):
-        return self.axes @ point_gap(_model(base), q, self.body_a, self.point_a, self.body_b, self.point_b)
+        return self.axes @ point_gap(_model(base), q, self.body_a, self.point_a, self.body_b, self.point_b, self.frame)
 
     def velocity(self, base, t, q, x):
-        return self.axes @ point_gap_velocity(_model(base), q, x, self.body_a, self.point_a, self.body_b, self.point_b)
+        return self.axes @ point_gap_velocity(_model(base), q, x, self.body_a, self.point_a, self.body_b,
+                                              self.point_b, self.frame)
 
 
 def _body_frame_rate(model, q, v, body: int):
@@ -434,32 +442,112 @@ class PrescribedCoordinate(_OneRow):
         return (x[self.dof] - rate)[None]
 
 
-def loop_closures(model, *, axes="auto") -> tuple[LoopClosure, ...]:
+def _frame_name(model, f: int) -> str:
+    return "the world" if f < 0 else f"body {model.body_names[f]!r}"
+
+
+def _traced(model) -> bool:
+    return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(model))
+
+
+def loop_reference(model, q=None, *, what: str | None = None) -> np.ndarray:
+    """A configuration that closes every loop of ``model`` (``model.loops``), near ``q``
+    (default ``model.qpos0``): ``q`` itself when it closes them, else its projection by
+    :func:`jaxbody.loop_directions.close_loops` (Newton's method, minimum-norm steps, on the
+    rotation group for quaternions). NumPy float64, shape ``(nq,)``.
+
+    Raises:
+        ValueError: the loops cannot be closed near ``q`` (naming the loops still open).
+    """
+    q = np.asarray(model.qpos0 if q is None else q, np.float64)
+    if not model.loops:
+        return q
+    specs = _with_frames(model)
+    dtype = model.body_pos.dtype
+    # the kinematics run in the model's dtype: a float32 model closes its loops to its own rounding
+    atol = max(CLOSED_ATOL, 100 * float(jnp.finfo(dtype).eps) * max(1.0, float(np.abs(np.asarray(model.body_pos)).max())))
+    return close_loops(
+        q, lambda qq: gap_jacobians(model, specs, jnp.asarray(qq, dtype))[:2],
+        lambda qq, dv: integrate_qpos(model, jnp.asarray(qq, dtype), jnp.asarray(dv, dtype), 1.0),
+        atol=atol, what=what or ("qpos0" if q is None else "the given configuration"), labels=[s.label for s in specs],
+    )
+
+
+def _with_frames(model):
+    return [s._replace(frame=loop_frame(model.tree.parent, s.body_a, s.body_b) if s.frame is None else s.frame)
+            for s in model.loops]
+
+
+def loop_closures(model, *, axes="auto", q=None) -> tuple[LoopClosure, ...]:
     """The loop closures a model carries (``model.loops``, from MJCF ``<connect>``) as
     :class:`LoopClosure` constraints, in order and named after them.
 
-    ``axes="auto"`` keeps, for each loop, only the world directions in which the loop can open
-    at all: the span of the left singular vectors of its 3 × nv velocity Jacobian, sampled at
-    ``qpos0`` and at four random configurations, with non-negligible singular values, given by
-    world axes when they span it (else by those singular vectors). A loop of a
-    planar linkage thus keeps its two in-plane rows (the row across the plane vanishes
-    identically and would make the set redundant); a spatial loop keeps all three.
-    ``axes=None`` keeps all three; an array ``(k, 3)`` gives the directions for every loop.
-    This is what :func:`jaxbody.scene` applies by default. The MJCF importer finds the
-    directions once (``LoopSpec.axes``), so scenes of a model whose parameters are traced
-    (fitting, ``vmap`` over parameters) reuse them.
+    ``axes="auto"`` keeps, for each loop, only the directions in which the loop can open at
+    all, in the frame of the lowest common ancestor of its two bodies
+    (:mod:`jaxbody.loop_directions`): found at a configuration that closes the loops, by a
+    singular-value decomposition of each loop's gap Jacobian there and a rank-revealing test
+    across loops that drops rows repeating earlier ones. A loop of a planar linkage thus keeps
+    its two in-plane rows (the row across the plane vanishes identically and would make the set
+    redundant), even on a floating base; a spatial loop keeps all three. The directions stored
+    on the model (``LoopSpec.axes``, found once by the MJCF importer at ``qpos0``) are used as
+    they are, so scenes of a model whose parameters are traced (fitting, ``vmap`` over
+    parameters) reuse them; ``q`` finds them anew at the configuration that closes the loops
+    nearest to ``q`` (a keyframe). ``axes=None`` keeps all three world directions; an array
+    ``(k, 3)`` gives world directions for every loop. This is what :func:`jaxbody.scene`
+    applies by default (:func:`loop_system`).
+
+    Raises:
+        ValueError: the directions must be found and the model's parameters are traced, the
+            loops cannot be closed near ``q``, or a loop constrains nothing.
     """
+    auto = isinstance(axes, str) and axes == "auto"
+    specs = list(model.loops)
+    if auto and (q is not None or any(s.axes is None for s in specs)):
+        if _traced(model):
+            raise ValueError(
+                f"loops {[s.label for s in specs]}: their constrained directions are found from a concrete model; "
+                "give them (LoopSpec.axes, or loop_closures(model, axes=...)) when the model's parameters are traced"
+            )
+        specs = _with_frames(model)
+        qc = loop_reference(model, q, what=None if q is None else "the given configuration")
+        _, J, R = gap_jacobians(model, specs, jnp.asarray(qc, model.body_pos.dtype))
+        rows = loop_rows(np.einsum("lji,ljn->lin", R, J), [s.label for s in specs],
+                         [_frame_name(model, s.frame) for s in specs])
+        specs = [s._replace(axes=tuple(map(tuple, a.tolist())), dropped=d)
+                 for s, a, d in zip(specs, rows.axes, rows.dropped)]
     out = []
-    for spec in model.loops:
-        if isinstance(axes, str) and axes == "auto":
-            # axes stored by the importer first: finding them samples the model numerically, which
-            # cannot be done when its parameters are traced
-            ax = spec.axes if spec.axes is not None else independent_loop_axes(model, spec)
+    for spec in specs:
+        if auto and spec.axes is not None and len(spec.axes) == 0:
+            continue  # every row repeats other loops' rows (LoopSpec.dropped says which)
+        if auto:
+            ax = spec.axes
+            frame = spec.frame if spec.frame is not None else loop_frame(model.tree.parent, spec.body_a, spec.body_b)
         else:
-            ax = axes
+            ax, frame = axes, -1
         out.append(LoopClosure(model, spec.body_a, spec.point_a, spec.body_b, spec.point_b, axes=ax,
-                               label=spec.label))
+                               label=spec.label, frame=frame))
     return tuple(out)
+
+
+def loop_system(model, q_ref=None, **constrain_options) -> ConstrainedSystem:
+    """The model's loops as a :class:`jaxbody.maggi.ConstrainedSystem` (what :func:`jaxbody.scene`
+    imposes by default), checked and partitioned at a configuration that closes them: ``q_ref``
+    (a keyframe) or ``model.qpos0``, projected onto the loops when it does not close them
+    (:func:`loop_reference`). The rows are the stored ones (:func:`loop_closures`); when they
+    are redundant at that configuration they are found anew there.
+
+    Raises:
+        ValueError: the loops cannot be closed near the reference, or are redundant or
+            inconsistent there even with their directions found anew (naming the rows).
+    """
+    q = loop_reference(model, q_ref, what="qpos0" if q_ref is None else "the reference configuration")
+    closures = loop_closures(model)
+    try:
+        return constrain(model, closures, q_ref=jnp.asarray(q, model.body_pos.dtype), **constrain_options)
+    except ValueError:
+        # the stored rows were chosen at qpos0; a singular reference needs its own
+        closures = loop_closures(model, q=q)
+        return constrain(model, closures, q_ref=jnp.asarray(q, model.body_pos.dtype), **constrain_options)
 
 
 def connect_constraints(mj_model, model, *, axes=None, active_only: bool = True) -> tuple[LoopClosure, ...]:

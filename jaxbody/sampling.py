@@ -2,8 +2,7 @@
 
 Sampled configurations and rates of a :class:`jaxbody.Model` for everything that needs
 states spread over the configuration space rather than a trajectory: the base parameters of
-identification (regressor stacked over states), the directions a loop closure constrains
-(:func:`jaxbody.loop_directions.independent_loop_axes`), design samples.
+identification (regressor stacked over states), design samples.
 """
 
 import numpy as np

@@ -555,3 +555,37 @@ def test_a_model_without_a_degree_of_freedom_is_a_clear_error():
     with pytest.raises(ValueError, match=r"from_mjcf: .*model has no degree of freedom: no body has a joint "
                                          r"\(1 body welded to the world\); add a joint to a body"):
         jb.from_mjcf(xml)
+
+
+URDF_WITH_EXTRAS = """<robot name="r">
+  <link name="base"><inertial><mass value="1"/><inertia ixx="0.1" iyy="0.1" izz="0.1" ixy="0" ixz="0" iyz="0"/></inertial></link>
+  <link name="l1"><inertial><mass value="1"/><inertia ixx="0.1" iyy="0.1" izz="0.1" ixy="0" ixz="0" iyz="0"/></inertial></link>
+  <joint name="j1" type="continuous"><parent link="base"/><child link="l1"/><axis xyz="0 0 1"/></joint>
+  <transmission name="t1"><type>transmission_interface/SimpleTransmission</type></transmission>
+  <gazebo reference="l1"><material>Gazebo/Grey</material></gazebo>
+  <gazebo><plugin name="p" filename="libp.so"/></gazebo>
+</robot>"""
+
+
+def test_urdf_elements_mujoco_skips_are_named_in_the_one_warning(tmp_path):
+    """MuJoCo's URDF reader skips <gazebo> and <transmission> without a word: the importer's one
+    warning names them with their counts (strict=True refuses them); MJCF has no such silence
+    (MuJoCo's compiler rejects an unknown element, naming it)."""
+    path = tmp_path / "r.urdf"
+    path.write_text(URDF_WITH_EXTRAS)
+    for source in (URDF_WITH_EXTRAS, path):
+        with warnings.catch_warnings(record=True) as rec:
+            warnings.simplefilter("always")
+            model = jb.from_urdf(source)
+        assert model.nv == 1
+        (w,) = rec
+        assert "URDF elements MuJoCo's URDF reader skips (ignored): 3 elements (2 <gazebo>, 1 <transmission>)" in str(w.message)
+    with pytest.raises(ValueError, match=r"(?s)strict=True.*2 <gazebo>, 1 <transmission>"):
+        jb.from_urdf(URDF_WITH_EXTRAS, strict=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a URDF MuJoCo reads fully: no warning
+        jb.from_urdf(URDF_WITH_EXTRAS.replace("<transmission", "<!--").replace("</transmission>", "-->")
+                     .replace('<gazebo reference="l1"><material>Gazebo/Grey</material></gazebo>', "")
+                     .replace('<gazebo><plugin name="p" filename="libp.so"/></gazebo>', ""))
+    with pytest.raises(ValueError, match=r"unrecognized element.*'gazebo'"):
+        jb.from_mjcf("<mujoco><gazebo/><worldbody><body><joint/><geom size='.1'/></body></worldbody></mujoco>")

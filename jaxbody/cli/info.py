@@ -11,7 +11,7 @@ from .arguments import SOURCE_HELP, add_scene_options, setup_jax
 from .scene_options import scene_from_options
 from .sources import load
 
-__all__ = ["add_parser", "run", "print_tree"]
+__all__ = ["add_parser", "run", "print_tree", "loop_lines"]
 
 
 def add_parser(sub):
@@ -140,6 +140,8 @@ def _effects(src, scene):
             rows = getattr(scene.constraints, "constraint_names", None) or ()
             loops = [spec.label for spec in model.loops]
             print(f"  constraints      {len(rows)} rows (Maggi): loop closures {', '.join(loops)}")
+            for line in loop_lines(model, scene.constraints):
+                print(f"    {line}")
     elif src.kind == "embedded":
         print(f"  constraints      solved explicitly by {type(src.system).__name__} (coordinates "
               f"{', '.join(src.q_labels)})")
@@ -159,6 +161,25 @@ def _effects(src, scene):
         for k in np.nonzero(np.any(w != 0, axis=1))[0]:
             print(f"  external load    {src.system.body_names[k]}: force {_vec(w[k, :3], '{:.4g}')} N, "
                   f"moment {_vec(w[k, 3:], '{:.4g}')} N·m at the centre of mass")
+
+
+def loop_lines(model, constraints):
+    """One line per loop closure of the scene (its bodies, frame and kept directions) and one per
+    direction left out, saying why."""
+    names = model.body_names
+    body = lambda b: "the world" if b < 0 else repr(names[b])
+    out = []
+    by_label = {spec.label: spec for spec in model.loops}
+    for c in getattr(constraints, "constraints", ()):
+        spec = by_label.get(getattr(c, "label", None))
+        if spec is None or not hasattr(c, "axes"):
+            continue
+        frame = "world axes" if c.frame < 0 else f"axes of body {names[c.frame]!r}"
+        dirs = ", ".join(_vec(a, "{:.4g}") for a in np.asarray(c.axes))
+        out.append(f"{spec.label}: point {_vec(spec.point_a, '{:.4g}')} of {body(spec.body_a)} on point "
+                   f"{_vec(spec.point_b, '{:.4g}')} of {body(spec.body_b)}; {c.size} rows along {dirs} ({frame})")
+        out += [f"  dropped {d}" for d in spec.dropped]
+    return out
 
 
 def _info_planar(src, system):

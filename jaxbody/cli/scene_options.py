@@ -4,6 +4,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from ..constraints import loop_system
 from ..joints import BALL, FREE, HINGE, SLIDE
 from ..scene import scene
 from .arguments import UsageError, one_line
@@ -81,7 +82,13 @@ def scene_from_options(src: Source, args):
         for i, values in _named_vectors("--load", args.load, names, [(3, 6)] * len(names), "body").items():
             wrench[i, :len(values)] = values
         kw["loads"] = Constant(jnp.asarray(wrench, dtype))
+    if spatial and system.loops and src.start.startswith("keyframe"):
+        # the loops checked and partitioned at the keyframe (projected onto them when it does
+        # not close them), where the simulation starts, rather than at qpos0
+        kw["constraints"] = "keyframe"
     try:
+        if kw.get("constraints") == "keyframe":
+            kw["constraints"] = loop_system(system, q_ref=src.q0)
         return scene(system, **kw)
     except ValueError as e:
         raise UsageError(one_line(str(e))) from None

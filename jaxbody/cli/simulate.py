@@ -13,6 +13,7 @@ import time
 import jax.numpy as jnp
 import numpy as np
 
+from .. import maggi
 from ..simulation import RESULTS, explain_failure, simulate
 from .arguments import (
     SOURCE_HELP,
@@ -60,6 +61,9 @@ def add_parser(sub):
     sim.add_argument("--keyframe", default=None, help="start from this keyframe of an MJCF model")
     sim.add_argument("--q0", type=floats, default=None, help="initial coordinates, comma separated")
     sim.add_argument("--v0", type=floats, default=None, help="initial velocities, comma separated")
+    sim.add_argument("--project-initial", action="store_true",
+                     help="put the initial state on the model's loop closures (positions by Newton's method, "
+                          "velocities in the kinetic metric) instead of stopping when it violates them")
     sim.add_argument("--chunks", type=count(1), default=10,
                      help="integrate and write in this many pieces (default 10)")
     sim.add_argument("--max-steps", type=count(1), default=100_000,
@@ -183,6 +187,7 @@ def run(args) -> int:
     jax = setup_jax()
     q0, v0 = initial_state(src, args)
     scene = scene_from_options(src, args)
+    q0, v0, projected = _on_constraints(scene, q0, v0, args.project_initial)
     for line in src.ignored:
         print(f"jaxbody simulate: note: not modelled, ignored: {line}", file=sys.stderr)
     out = args.out
@@ -256,6 +261,8 @@ def run(args) -> int:
     loops = [spec.label for spec in getattr(src.system, "loops", ())]
     if loops and scene.constraints is not None:
         print(f"  constraints     loop closures {', '.join(loops)} (Maggi equations)")
+    if projected:
+        print(f"  initial state   {projected}")
     print(f"  integrated      t = 0 .. {t[-1] if len(t) else 0:g} s of {args.t1:g} s with {args.solver}, "
           f"rtol={args.rtol:g}, atol={args.atol:g}" + (f", dt={args.dt:g}" if args.dt else "")
           + f", in {len(chunks)} chunks")
@@ -276,6 +283,23 @@ def run(args) -> int:
                                f"the {len(t)} saved states before it were written")
         return 1
     return 0
+
+
+def _on_constraints(scene, q0, v0, project):
+    """``(q0, v0, note)``: the initial state checked against the scene's constraints (positions
+    and velocities), or put on them with ``--project-initial`` (``note`` says by how much)."""
+    cs = scene.constraints
+    if not isinstance(cs, maggi.ConstrainedSystem) or cs.n_constraint == 0:
+        return q0, v0, ""
+    try:
+        q, v, dv = maggi.initial_state(cs, q0, v0, 0.0, project_initial=project, check_positions=True)
+    except ValueError as e:
+        raise UsageError(f"{one_line(e)} (or pass --project-initial)".replace(" or pass project_initial=True", "")) from None
+    if not project:
+        return q0, v0, ""
+    dq = float(np.max(np.abs(np.asarray(q) - np.asarray(q0)), initial=0.0))
+    return q, v, (f"projected onto the constraints (--project-initial): max|Δq| = {dq:.3g}, "
+                  f"max|Δv| = {float(np.max(np.abs(np.asarray(dv)), initial=0.0)):.3g}")
 
 
 def _successful():

@@ -44,7 +44,7 @@ import numpy as np
 
 from ..joints import HINGE, JOINT_KIND_NAMES, SLIDE, JointLayout
 from .._util import quat_to_matrix
-from ..loop_directions import independent_loop_axes
+from ..loop_directions import close_loops, loop_frame, loop_rows
 from ..loops import LoopSpec
 from ..model import Model, validate_parameters
 from ..tree import BodyTree
@@ -126,7 +126,36 @@ def from_urdf(source, *, strict: bool = False, dtype=None) -> Model:
     jaxbody reports as not modelled). Arguments, returns, raises and warnings as in
     :func:`from_mjcf`.
     """
-    return _from_mujoco(compile_source(source, "from_urdf", "URDF"), strict, dtype, "from_urdf")
+    m = compile_source(source, "from_urdf", "URDF")
+    return _from_mujoco(m, strict, dtype, "from_urdf", extra=_urdf_ignored_elements(source))
+
+
+# What MuJoCo's URDF reader reads; any other element is skipped without a word, so it is reported
+_URDF_READ = {"robot": {"link", "joint", "material", "mujoco"}, "joint": {"origin", "parent", "child", "axis", "limit", "dynamics"}}
+
+
+def _urdf_ignored_elements(source) -> list[str]:
+    """One report line naming the URDF elements MuJoCo's URDF reader skips (``<gazebo>``,
+    ``<transmission>``, a joint's ``<mimic>`` ...), with their counts; empty when none."""
+    import xml.etree.ElementTree as ET
+
+    try:
+        text = source if isinstance(source, str) and source.lstrip().startswith("<") else pathlib.Path(source).read_text()
+        root = ET.fromstring(text)
+    except (OSError, ET.ParseError, UnicodeDecodeError):  # MuJoCo has read it: nothing more to say
+        return []
+    counts: dict[str, int] = {}
+    for child in root:
+        if isinstance(child.tag, str) and child.tag not in _URDF_READ["robot"]:
+            counts[f"<{child.tag}>"] = counts.get(f"<{child.tag}>", 0) + 1
+    for joint in root.iter("joint"):
+        for child in joint:
+            if isinstance(child.tag, str) and child.tag not in _URDF_READ["joint"]:
+                counts[f"<joint><{child.tag}>"] = counts.get(f"<joint><{child.tag}>", 0) + 1
+    if not counts:
+        return []
+    listed = ", ".join(f"{n} {tag}" for tag, n in sorted(counts.items()))
+    return [f"URDF elements MuJoCo's URDF reader skips (ignored): {sum(counts.values())} elements ({listed})"]
 
 
 def from_mujoco(mj_model, *, strict: bool = False, dtype=None) -> Model:
@@ -143,7 +172,7 @@ def from_mujoco(mj_model, *, strict: bool = False, dtype=None) -> Model:
     return _from_mujoco(mj_model, strict, dtype, "from_mujoco")
 
 
-def _from_mujoco(mj_model, strict: bool, dtype, _caller: str) -> Model:
+def _from_mujoco(mj_model, strict: bool, dtype, _caller: str, extra=()) -> Model:
     """:func:`from_mujoco`, with the public function's name (``_caller``) for messages."""
     dtype = _check_dtype(dtype, _caller)
     mujoco = _mujoco()
@@ -251,13 +280,13 @@ def _from_mujoco(mj_model, strict: bool, dtype, _caller: str) -> Model:
     loops = connect_loops(m)
     if loops:  # the directions each loop constrains, found once here from the concrete model
         try:
-            loops = tuple(s._replace(axes=tuple(map(tuple, independent_loop_axes(model, s).tolist()))) for s in loops)
+            loops = _loop_directions(m, mujoco, model, loops)
         except ValueError as e:
             raise ValueError(f"{where}: {e}") from None
         model = Model(**{f.name: getattr(model, f.name) for f in dataclasses.fields(model) if f.name != "loops"},
                       loops=loops)
 
-    issues = unsupported_features(m)
+    issues = list(extra) + unsupported_features(m)
     if issues:
         lines = "\n".join(f"  - {s}" for s in issues)
         if strict:
@@ -302,6 +331,46 @@ def connect_loops(m, active_only: bool = True) -> tuple[LoopSpec, ...]:
         name = _name(m, mujoco.mjtObj.mjOBJ_EQUALITY, i) or f"connect{i}"
         out.append(LoopSpec(name, b1 - 1, tuple(float(x) for x in p1), b2 - 1, tuple(float(x) for x in p2)))
     return tuple(out)
+
+
+def _loop_directions(m, mujoco, model, loops):
+    """``loops`` with their frames, independent directions and dropped rows
+    (:mod:`jaxbody.loop_directions`), found with MuJoCo's kinematics at ``qpos0`` (projected
+    onto the loops when it does not close them: a site-based connect): no program is compiled."""
+    d = mujoco.MjData(m)
+    nv = int(m.nv)
+    names = model.body_names
+    specs = [s._replace(frame=loop_frame(model.tree.parent, s.body_a, s.body_b)) for s in loops]
+
+    def point(body, p):
+        if body < 0:
+            return np.asarray(p, np.float64), np.zeros((3, nv))
+        X = d.xpos[body + 1] + d.xmat[body + 1].reshape(3, 3) @ np.asarray(p, np.float64)
+        jacp = np.zeros((3, nv))
+        mujoco.mj_jac(m, d, jacp, None, X, body + 1)
+        return X, jacp
+
+    def gaps_and_jacobians(q):
+        d.qpos[:] = q
+        mujoco.mj_kinematics(m, d)
+        mujoco.mj_comPos(m, d)  # the DoF motions mj_jac reads
+        parts = [(point(s.body_a, s.point_a), point(s.body_b, s.point_b)) for s in specs]
+        return (np.array([a[0] - b[0] for a, b in parts]).reshape(-1, 3),
+                np.array([a[1] - b[1] for a, b in parts]).reshape(-1, 3, nv))
+
+    def integrate(q, dv):
+        q = np.array(q, np.float64)
+        mujoco.mj_integratePos(m, q, np.asarray(dv, np.float64), 1.0)
+        return q
+
+    labels = [s.label for s in specs]
+    q = close_loops(np.array(m.qpos0, np.float64), gaps_and_jacobians, integrate, labels=labels)
+    _, J = gaps_and_jacobians(q)
+    R = np.stack([np.eye(3) if s.frame < 0 else d.xmat[s.frame + 1].reshape(3, 3) for s in specs])
+    frame_names = ["the world" if s.frame < 0 else f"body {names[s.frame]!r}" for s in specs]
+    rows = loop_rows(np.einsum("lji,ljn->lin", R, J), labels, frame_names)
+    return tuple(s._replace(axes=tuple(map(tuple, a.tolist())), dropped=dr)
+                 for s, a, dr in zip(specs, rows.axes, rows.dropped))
 
 
 def unsupported_features(mj_model) -> list[str]:

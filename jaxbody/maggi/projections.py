@@ -8,13 +8,16 @@ checks or projects an initial state; :func:`project_velocities` (kinetic metric)
 
 from collections.abc import Callable, Sequence
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.linalg
 from jax import lax
 
 from .. import linalg
 from .._types import ArrayLike
+from ..kinematics import integrate_qpos
 from ..model import Model
 from .constrained import ConstrainedSystem
 from .constraint import Constraint
@@ -33,12 +36,25 @@ def check_constraints(system: ConstrainedSystem, q, x=None, t=0.0, *, rtol: floa
     if s > n:
         raise ValueError(f"{s} constraints on {n} quasi-velocities: at least {s - n} are redundant")
     x = jnp.zeros((n,), jnp.asarray(q).dtype) if x is None else jnp.asarray(x)
+    G, f = _jacobian_and_residual(system, t, q, x)
+    _check_rows(G, f, x, system.constraint_names, rtol)
+
+
+# G and f* at the reference state from one compiled program: evaluated op by op, every
+# differentiated call of the kinematics would compile a program of its own
+@eqx.filter_jit
+def _jacobian_and_residual(system, t, q, x):
+    return system.constraint_jacobian(t, q, x), system.constraint_residual(t, q, x)
+
+
+def _check_rows(G, f, x, names, rtol):
+    """The rank test of :func:`check_constraints` on ``G`` and ``f*`` at the reference state."""
+    s, n = G.shape
     # a build-time check on the host, once and outside any trace: LAPACK's SVD in float64 is
     # safe here and gives the sharpest rank test
-    G = np.asarray(system.constraint_jacobian(t, q, x), dtype=np.float64)
+    G = np.asarray(G, dtype=np.float64)
     # affine part at x = 0 for linear constraints: f* = G x + c
-    c = np.asarray(system.constraint_residual(t, q, x), dtype=np.float64) - G @ np.asarray(x)
-    names = system.constraint_names
+    c = np.asarray(f, dtype=np.float64) - G @ np.asarray(x, dtype=np.float64)
     # rank tolerance relative to G's largest entry, so the rows' units do not matter; the
     # floor keeps an all-zero G comparable
     scale = max(np.abs(G).max(), 1e-300)
@@ -125,7 +141,11 @@ def constrain(
         base=base, constraints=constraints, epsilon=epsilon, free=tuple(range(base.nv)),
         baumgarte=jnp.asarray(baumgarte, dtype), repartitioning=bool(repartition), partition_tolerance=tol,
     )
-    check_constraints(system, q_ref, x_ref, t_ref)
+    if system.n_constraint > base.nv:
+        check_constraints(system, q_ref, x_ref, t_ref)  # raises: more rows than velocities
+    G, f = _jacobian_and_residual(system, t_ref, q_ref, x_ref) if system.n_constraint else (None, None)
+    if G is not None:
+        _check_rows(G, f, x_ref, system.constraint_names, 1e-9)
     if position_atol is not None:
         # a reference off the constraints would choose the partition and check the rows at a
         # configuration the mechanism cannot reach
@@ -137,7 +157,10 @@ def constrain(
                 f"(position residuals {[float(phi[i]) for i in off]}, admissible {position_atol:g}); give a "
                 "configuration on them (jaxbody.maggi.project_positions projects one)"
             )
-    if epsilon is None:
+    if epsilon is None and G is not None and system.partitioned:
+        # the partition from the same G (column-pivoted QR): no second program to compile
+        system = system.with_partition(_free_columns(np.asarray(G, np.float64)))
+    elif epsilon is None:
         system = system.repartition(q_ref, x_ref, t_ref)
     else:
         n_eps = int(np.prod(jax.eval_shape(lambda: epsilon(base, t_ref, q_ref, x_ref)).shape))
@@ -153,6 +176,15 @@ def constrain(
                 f"(ε, f*) at the reference state (pivot ratio {float(ratio):.3g})"
             )
     return system
+
+
+def _free_columns(G) -> tuple[int, ...]:
+    """The free quasi-velocities of the coordinate partition at ``G`` (s, n): the columns a
+    column-pivoted QR (Businger–Golub, LAPACK ``geqp3``) does not take as pivots, ascending
+    (the choice :func:`jaxbody.maggi.constrained.pivoted_free` makes inside a solve)."""
+    s, n = G.shape
+    pivots = scipy.linalg.qr(G, pivoting=True, mode="r")[1]
+    return tuple(sorted(int(i) for i in pivots[s:]))
 
 
 def project_velocities(system: ConstrainedSystem, q, x, t=0.0, *, iterations: int = 3):
@@ -183,9 +215,13 @@ def project_velocities(system: ConstrainedSystem, q, x, t=0.0, *, iterations: in
 
 
 def project_positions(system: ConstrainedSystem, q, t=0.0, *, iterations: int = 8):
-    """Newton's method with minimum-norm steps on the holonomic residuals ``φ(t, q) = 0``
-    (``q ← q − Jᵀ(JJᵀ)⁻¹φ``, ``J = ∂φ/∂q`` over the holonomic rows). Coordinates must be
-    plain (no quaternions). Returns the projected ``q``."""
+    """Newton's method with minimum-norm steps on the holonomic residuals ``φ(t, q) = 0``.
+
+    On a :class:`ModelBase` the steps are taken in the joint velocities and integrated on the
+    rotation group, so ball and free joints keep unit quaternions:
+    ``Δv = −Gᵀ(GGᵀ)⁻¹φ``, ``q ← integrate_qpos(q, Δv, 1)`` (``G = ∂f*/∂v = ∂φ/∂q · ∂q̇/∂v``
+    over the holonomic rows, since ``f* = dφ/dt``). On other bases the coordinates must be plain
+    (no quaternions): ``q ← q − Jᵀ(JJᵀ)⁻¹φ``, ``J = ∂φ/∂q``. Returns the projected ``q``."""
     rows = [i for i, ok in enumerate(_holonomic_mask(system)) if ok]
     q = jnp.asarray(q)
     if not rows:
@@ -195,13 +231,23 @@ def project_positions(system: ConstrainedSystem, q, t=0.0, *, iterations: int = 
     idx = jnp.asarray(rows, dtype=jnp.int32)
     phi = lambda qq: system.position_residual(t, qq)[idx]
 
+    if isinstance(system.base, ModelBase):
+        model = system.base.model
+        zero = jnp.zeros((system.nv,), q.dtype)
+
+        def step(_, qq):
+            G = system.constraint_jacobian(t, qq, zero)[idx]
+            return integrate_qpos(model, qq, -G.T @ linalg.solve_spd(G @ G.T, phi(qq)), 1.0)
+
+        return lax.fori_loop(0, iterations, step, q)
+
     # Newton iterations with minimum-norm steps (optimistix's Newton needs a square
     # system; its least-squares solvers call LAPACK, which is unsafe in CPU batches).
-    def step(_, qq):
+    def plain_step(_, qq):
         J = jax.jacfwd(phi)(qq)
         return qq - J.T @ linalg.solve_spd(J @ J.T, phi(qq))
 
-    return lax.fori_loop(0, iterations, step, q)
+    return lax.fori_loop(0, iterations, plain_step, q)
 
 
 def _holonomic_mask(system: ConstrainedSystem) -> list[bool]:
@@ -218,28 +264,50 @@ def _holonomic_mask(system: ConstrainedSystem) -> list[bool]:
     return mask
 
 
-def initial_state(system: ConstrainedSystem, q, x, t=0.0, *, project_initial: bool = False, atol: float = 1e-9):
+def initial_state(system: ConstrainedSystem, q, x, t=0.0, *, project_initial: bool = False, atol: float = 1e-9,
+                  position_atol: float = 1e-8, check_positions: bool = False):
     """Check (or project) an initial state against the constraints.
 
     Args:
         system: constrained system.
         q, x: initial coordinates and quasi-velocities.
-        project_initial: project ``x`` on the constraint manifold (kinetic metric) instead of
-            raising; the correction is returned.
+        project_initial: project ``q`` on the holonomic constraints (:func:`project_positions`)
+            and then ``x`` on all of them (kinetic metric, :func:`project_velocities`) instead of
+            raising; the velocity correction is returned.
         atol: admissible velocity residual ``max |f*|`` (scaled by ``max(1, |x|)``).
+        position_atol: admissible position residual ``max |φ|`` of the holonomic rows (scaled
+            by ``max(1, |q|)``).
+        check_positions: raise when ``q`` violates the holonomic constraints and
+            ``project_initial`` is off (by default only the velocities are checked here;
+            :func:`jaxbody.simulate` checks positions itself).
 
     Returns:
         ``(q, x, correction)`` with ``correction = x_projected − x`` (zeros when not projected).
 
     Raises:
-        ValueError: the initial quasi-velocities violate the constraints, naming the rows.
+        ValueError: the initial quasi-velocities (or, with ``check_positions``, coordinates)
+            violate the constraints, naming the rows.
     """
     q = jnp.asarray(q)
     x = jnp.asarray(x, q.dtype)
+    names = system.constraint_names
+    hol = np.asarray(_holonomic_mask(system), bool)
+    if hol.any():
+        phi = np.where(hol, np.asarray(system.position_residual(t, q)), 0.0)
+        pscale = max(1.0, float(np.max(np.abs(np.asarray(q))))) if q.size else 1.0
+        off = np.flatnonzero(np.abs(phi) > position_atol * pscale)
+        if off.size and check_positions and not project_initial:
+            raise ValueError(
+                f"initial positions violate the constraints {[names[i] for i in off]} (residuals "
+                f"{[float(phi[i]) for i in off]}); give coordinates that satisfy them or pass "
+                "project_initial=True"
+            )
+        if off.size and project_initial:
+            q = project_positions(system, q, t)
     f = np.asarray(system.constraint_residual(t, q, x))
     # tolerance relative to the speed (floored at 1), so fast and slow states are judged alike
     scale = max(1.0, float(np.max(np.abs(np.asarray(x)))) if x.size else 1.0)
-    bad = [system.constraint_names[i] for i in np.flatnonzero(np.abs(f) > atol * scale)]
+    bad = [names[i] for i in np.flatnonzero(np.abs(f) > atol * scale)]
     if not bad:
         return q, x, jnp.zeros_like(x)
     if not project_initial:

@@ -22,7 +22,7 @@ import numpy as np
 
 from .. import maggi
 from .._types import ArrayLike
-from ..constraints import loop_closures
+from ..constraints import loop_closures, loop_system
 from ..effects import Actuation, BodyLoads, Effect, Gravity, JointDampers, JointSprings, SupportMotion
 from .._util import is_concrete
 from ..backends import KERNELS
@@ -133,7 +133,9 @@ def scene(
     validate_at_boundary(model)
     dtype = model.body_pos.dtype
     if isinstance(constraints, str) and constraints == "model":
-        constraints = loop_closures(model) if model.loops else None
+        # checked and partitioned at a configuration that closes the loops (qpos0, projected onto
+        # them when it does not); a traced model gets the message of _constraint_slot
+        constraints = (loop_system(model) if is_concrete(model) else loop_closures(model)) if model.loops else None
     constraints = _constraint_slot(model, constraints)
     # gravity, springs and dampers from the model are declared only when non-zero, so that a
     # model without them traces none of their terms; a traced value might be non-zero: declared
