@@ -238,3 +238,10 @@ def test_phases_report_the_initial_velocity_correction():
     jb.simulate(one, q0, run.v[0], 0.1, n_save=3, **tol)
     ok = jb.simulate(one, q0, run.v[0], 0.1, n_save=3, project_initial=True, **tol)
     np.testing.assert_array_equal(ok.stats["v0_correction"], 0.0)
+    # positions off the rod: an error naming it, or projected onto it on request
+    off = 1.05 * q0
+    with pytest.raises(ValueError, match=r"initial positions violate the constraints \['rod\[0\]'\]"):
+        jb.simulate(one, off, bad, 0.1, n_save=3, **tol)
+    moved = jb.simulate(one, off, bad, 0.1, n_save=3, project_initial=True, **tol)
+    assert float(jnp.linalg.norm(moved.q[0])) == pytest.approx(L, rel=1e-10)
+    np.testing.assert_allclose(pend.constraint_residual(0.0, moved.q[0], moved.v[0]), 0.0, atol=1e-12)

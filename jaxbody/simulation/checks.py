@@ -187,32 +187,32 @@ V0_ATOL = 1e-9  # admissible residual of v0, scaled by max(1, max|v0|) (as jaxbo
 
 
 def concrete_constraint_check(cs, t0, q0, v0, project_initial):
-    """``(v0, correction)``: ``v0`` when it satisfies the constraints ``cs`` at ``(t0, q0)``,
-    else its projection (``project_initial``) or a ``ValueError`` naming the rows at fault. The
-    positions ``q0`` must lie on the holonomic rows (within :data:`Q0_ATOL`) unless
-    ``project_initial``;
-    ``correction`` is the projection's change (``None`` without ``project_initial``)."""
+    """``(q0, v0, correction)``: the initial state when it satisfies the constraints ``cs`` at
+    ``t0``, else its projection (``project_initial``: the positions onto the holonomic rows, then
+    the velocities onto all rows) or a ``ValueError`` naming the rows at fault. Without
+    ``project_initial`` the positions must lie on the holonomic rows within :data:`Q0_ATOL`;
+    ``correction`` is the velocity projection's change (``None`` without ``project_initial``)."""
     # the admissible case (the usual one) is decided by one compiled residual; otherwise
     # jaxbody.maggi.initial_state names the rows at fault or projects
     phi, f = (np.asarray(x) for x in _residual(cs, t0, q0, v0))
-    # checked unless a projection was asked for (a continued run starts from a solve's end,
-    # whose positions carry the integration's drift)
-    off = np.flatnonzero(np.abs(phi) > Q0_ATOL) if not project_initial else np.zeros(0, int)
-    if off.size:
+    off = np.flatnonzero(np.abs(phi) > Q0_ATOL)
+    if off.size and not project_initial:
         names = [cs.constraint_names[i] for i in off]
         raise ValueError(
             f"simulate: q0: initial positions violate the constraints {names} (position residuals "
             f"{[float(phi[i]) for i in off]}, admissible {Q0_ATOL:g}); start on the constraints, e.g. from "
-            "jaxbody.maggi.project_positions(constrained_system, q0)"
+            "jaxbody.maggi.project_positions(constrained_system, q0), or pass project_initial=True"
         )
     scale = max(1.0, float(np.max(np.abs(np.asarray(v0)))))
-    if np.all(np.abs(f) <= V0_ATOL * scale):
-        return v0, (jnp.zeros_like(v0) if project_initial else None)
+    if not off.size and np.all(np.abs(f) <= V0_ATOL * scale):
+        return q0, v0, (jnp.zeros_like(v0) if project_initial else None)
     try:
-        _, v0p, correction = maggi.initial_state(cs, q0, v0, t0, project_initial=project_initial, atol=V0_ATOL)
+        q0p, v0p, correction = maggi.initial_state(cs, q0, v0, t0, project_initial=project_initial, atol=V0_ATOL)
     except ValueError as err:
         raise ValueError(f"simulate: v0: {err}") from None
-    return v0p.astype(v0.dtype), (correction.astype(v0.dtype) if project_initial else None)
+    # positions within the check's tolerance stay as given (a continued run's drift is kept)
+    q0 = q0p.astype(q0.dtype) if off.size else q0
+    return q0, v0p.astype(v0.dtype), (correction.astype(v0.dtype) if project_initial else None)
 
 
 # compiled once per constraint structure: the eager check runs it on every concrete solve

@@ -144,10 +144,12 @@ def simulate(
         progress: show diffrax's ``TqdmProgressMeter`` (text meter without tqdm).
         track_work: integrate the work of the non-conservative effects (energy balance).
         project_initial: when the scene has Maggi constraints (``jb.scene(..., constraints=)``
-            or a :class:`jaxbody.maggi.ConstrainedSystem`) and ``v0`` violates them, project
-            ``v0`` on the constraint manifold in the kinetic metric (the closest admissible
-            rates in kinetic energy) instead of raising; the correction ``v0_projected − v0``
-            is reported in ``Solution.stats["v0_correction"]``.
+            or a :class:`jaxbody.maggi.ConstrainedSystem`) and ``(q0, v0)`` violates them,
+            project instead of raising: ``q0`` onto the holonomic rows (Newton steps,
+            :func:`jaxbody.maggi.project_positions`; concrete ``q0`` only, a traced one is
+            used as given), then ``v0`` onto all rows in the kinetic metric (the closest
+            admissible rates in kinetic energy); the correction ``v0_projected − v0`` is
+            reported in ``Solution.stats["v0_correction"]``.
 
     Returns:
         :class:`Solution`.

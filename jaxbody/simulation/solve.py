@@ -111,7 +111,7 @@ def simulate_scene(
     if is_concrete(scene, q0, v0, t0):
         concrete_value_checks(scene, q0, v0)
         if constrained is not None:
-            v0, correction = concrete_constraint_check(constrained, t0, q0, v0, project_initial)
+            q0, v0, correction = concrete_constraint_check(constrained, t0, q0, v0, project_initial)
         valid = None
     else:
         if throw:
