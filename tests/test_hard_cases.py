@@ -4,7 +4,9 @@ states, stiffness, float32, long-rollout gradients, a bad member in a batch, ver
 References are independent of the code under test: MuJoCo's ``mj_forward`` on the same MJCF
 (built here as text), the closed forms of the papers (Example 5's reaction, a free rotation),
 energy conservation, converged high-order runs, finite differences, and the unbatched solves.
-The long versions are marked ``slow``; each has a short default-suite version.
+The default suite keeps the cheap cases (a short chaotic run, the long chain and the mass ratios
+against MuJoCo, Example 5's reaction, the quaternion sign flip, float32 chaos, a bad member in a
+batch on the default kernel); the long runs and the costly compilations are marked ``slow``.
 """
 
 import diffrax
@@ -17,6 +19,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import jaxbody as jb
+from jaxbody.examples import disk as dk
 
 from test_constraints import four_bar, four_bar_angles, four_bar_rates
 
@@ -163,6 +166,7 @@ def test_example5_reaction_near_the_horizontal_links():
             np.testing.assert_allclose(fr * np.cos(phi), ref, rtol=1e-9)
 
 
+@pytest.mark.slow
 def test_example5_runs_through_the_horizontal():
     """φ passes π/2 and back: the motion itself is regular there; energy is conserved."""
     ex5 = jb.examples.vertical_line_double_pendulum()
@@ -179,6 +183,7 @@ def four_bar_scene():
     return jb.scene(cs.base.model, constraints=cs)
 
 
+@pytest.mark.slow
 def test_four_bar_through_folded_configuration(four_bar_scene):
     """The crank turns full circles, through the configurations where crank and coupler are
     collinear (folded over each other and stretched out): constraints, energy and the motion stay
@@ -217,6 +222,7 @@ def test_ball_joint_through_quaternion_sign_flip():
 
 
 # -------------------------------------------------------------------- rolling disk nearly flat
+@pytest.mark.slow
 def test_rolling_disk_falling_flat():
     """The rolling disk started at θ = 0.05 rad (nearly flat) falls onto the plane: θ → 0 while
     ψ̇ sin θ stays non-zero, so ψ̇ = x₂ / sin θ of its Euler-angle kinematics grows without bound
@@ -224,8 +230,6 @@ def test_rolling_disk_falling_flat():
     is integrated accurately (energy, rolling constraints); the solve never steps across θ = 0: it
     stops short of it with a failed result and a finite state, and an event on sin θ stops it there
     cleanly."""
-    from jaxbody.examples import disk as dk
-
     roll = dk.rolling_disk()
     theta0, precession = 0.05, 3.0
     q0 = jnp.array([0.0, 0.0, 0.0, theta0, 0.0])
@@ -256,6 +260,7 @@ def test_float32_chaotic_double_pendulum():
     assert drift <= 1e-4, drift
 
 
+@pytest.mark.slow
 def test_float32_long_chain_and_mass_ratios_within_conditioning(long_chain):
     """Float32 forward dynamics of the 100-link chain and of the 1e6 mass ratios: finite, and as
     accurate as the mass matrix's conditioning allows (error ≲ cond(M)·ε₃₂·|a|): for these models
@@ -278,6 +283,7 @@ def test_float32_long_chain_and_mass_ratios_within_conditioning(long_chain):
 DAMPED = chain_mjcf(2, damping=(0.05, 0.05), axes=("0 1 0", "1 0 0"))
 
 
+@pytest.mark.slow
 def test_gradient_through_10k_step_rollout():
     """∂q(10 s)/∂q0 through 10⁴ RK4 steps of a damped (non-chaotic) chain: finite and equal to
     central finite differences."""
@@ -298,6 +304,7 @@ def test_gradient_through_10k_step_rollout():
     assert np.abs(jac).max() > 1e-3  # damped, but the final state still depends on the start
 
 
+@pytest.mark.slow
 def test_gradients_at_rest_and_aligned():
     """At zero velocity, links aligned (hanging straight) and the ball joint at the identity
     quaternion (norms, square roots and divisions at their special points): gradients of a short
