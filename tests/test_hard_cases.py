@@ -5,8 +5,8 @@ References are independent of the code under test: MuJoCo's ``mj_forward`` on th
 (built here as text), the closed forms of the papers (Example 5's reaction, a free rotation),
 energy conservation, converged high-order runs, finite differences, and the unbatched solves.
 The default suite keeps the cheap cases (a short chaotic run, the long chain and the mass ratios
-against MuJoCo, Example 5's reaction, the quaternion sign flip, float32 chaos, a bad member in a
-batch on the default kernel); the long runs and the costly compilations are marked ``slow``.
+against MuJoCo, Example 5's reaction, the quaternion sign flip, a bad member in a batch on the default
+kernel); the long runs and the costly compilations are marked ``slow``.
 """
 
 import diffrax
@@ -252,6 +252,7 @@ def test_rolling_disk_falling_flat():
 
 
 # ------------------------------------------------------------------------------ float32
+@pytest.mark.slow
 def test_float32_chaotic_double_pendulum():
     """Float32 with a tolerance float32 can meet: no NaN, and the energy drifts no more than a few
     hundred float32 ulps over 10 s of chaos (the trajectory itself decorrelates: chaos)."""
