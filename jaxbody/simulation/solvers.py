@@ -338,8 +338,9 @@ def _kvaerno5() -> diffrax.Kvaerno5:
     Coriolis and spring terms change with the velocities and angles), the chord iteration stops
     converging, and each such step is rejected and retried five times shorter: more steps
     rejected than accepted, ten times the steps of Newton's method (docs/simulation.md, "Hard
-    cases"). Newton costs a Jacobian per iteration, a few vector-field derivatives of a small
-    state, and converges in two or three.
+    cases"). Newton costs a Jacobian per iteration (forward-mode derivatives of the vector
+    field, one per state component); where the chord method converges it takes as many steps,
+    each cheaper.
     """
     return diffrax.Kvaerno5(root_finder=diffrax.with_stepsize_controller_tols(optx.Newton)())
 
