@@ -7,7 +7,6 @@ import subprocess
 import sys
 
 import pytest
-from jaxbody._xla import default_xla_flags
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
@@ -56,40 +55,3 @@ def test_readme_links_stay_in_the_repository():
             continue
         assert (REPO / target).exists(), f"README links to {target}, which is not in the repository"
     assert "docs/" in text and "mkdocs" in text
-
-
-@pytest.mark.slow
-@pytest.mark.timeout(600)
-def test_multihost_script_runs_on_localhost(tmp_path):
-    """The multi-host script of docs/simulation.md, launched as documented (two processes, coordinator
-    address, process count and id on the command line), runs and splits the batch between the processes."""
-    import socket
-
-    import numpy as np
-
-    blocks = [b for b in python_blocks(REPO / "docs" / "simulation.md") if b.startswith("# run_batch.py")]
-    assert len(blocks) == 1
-    script = blocks[0].replace("n = 100_000", "n = 6").replace(", 1.0,\n", ", 0.05,\n")
-    assert "n = 6" in script and ", 0.05," in script
-    (tmp_path / "run_batch.py").write_text(script)
-    with socket.socket() as s:  # a free port
-        s.bind(("localhost", 0))
-        port = s.getsockname()[1]
-    env = dict(os.environ, XLA_FLAGS=default_xla_flags())
-    env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
-    procs = [subprocess.Popen([sys.executable, "run_batch.py", f"localhost:{port}", "2", str(i)], cwd=tmp_path,
-                              env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-             for i in range(2)]
-    outs = [p.communicate(timeout=540)[0] for p in procs]
-    assert [p.returncode for p in procs] == [0, 0], "\n".join(o[-3000:] for o in outs)
-    parts = [np.load(tmp_path / f"part{i:03d}.npz") for i in range(2)]
-    assert [p["q"].shape for p in parts] == [(3, 11, 7), (3, 11, 7)]
-    assert all(p["success"].all() for p in parts)
-    # member i of the global batch is in part i % 2, row i // 2: the initial states are the global ones
-    rng = np.random.default_rng(0)
-    import mujoco
-
-    qpos0 = mujoco.MjModel.from_xml_path(str(REPO / "jaxbody" / "models" / "panda.xml")).qpos0
-    q0s = np.tile(qpos0, (6, 1)) + 0.1 * rng.standard_normal((6, 7))
-    for i in range(6):
-        np.testing.assert_allclose(parts[i % 2]["q"][i // 2, 0], q0s[i], rtol=0, atol=1e-12)

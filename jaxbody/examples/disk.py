@@ -20,6 +20,12 @@ differentiation. The other regimes **add constraints** to this base system:
   ``x₄ + ρx₃ = 0``, ``x₅ + ρ sin θ·x₁ = 0``; the reactions are the friction force
   components on the horizontal axes along and across the line of nodes.
 
+The Euler angles are singular where the disk lies flat (``sin θ = 0``): ``ψ̇ = x₂ / sin θ`` in
+:meth:`DiskOnPlane.qdot` grows without bound as a disk with ``x₂ ≠ 0`` falls flat, which is
+also where the model of a disk touching the plane at one rim point ends. An adaptive solve
+never steps across it: its steps shrink until ``max_steps`` stops it just before, with a finite
+state. To stop at a chosen height instead, pass ``event=jb.Event(lambda t, q, x: jnp.sin(q[3]) - h)``.
+
 Users give ``(q, q̇)``; :func:`initial_velocities` converts to ``x`` and rejects rates that
 violate the regime. :func:`disk_outputs` gives the centre, contact point, normal force,
 friction reactions and energy along a solution.

@@ -16,6 +16,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 from jax import lax
 
 # the module, not its functions: read at call time, so a test can intercept the native calls
@@ -327,6 +328,23 @@ class UnitQuaternions(eqx.Module):
         return (normalize_qpos(self.model, y[0]),) + tuple(y[1:])
 
 
+def _kvaerno5() -> diffrax.Kvaerno5:
+    """Kvaerno5 (an L-stable ESDIRK method) whose stage equations are solved by Newton's method
+    (Jacobian re-evaluated at every iteration), at the tolerances of the step-size controller.
+
+    diffrax's default root finder for it is the chord method: one Jacobian per step, reused by
+    every stage and iteration. On a chain whose joint springs span 1 to 1e6 the fast modes move
+    the state so much within a step that the frozen Jacobian no longer describes it (the
+    Coriolis and spring terms change with the velocities and angles), the chord iteration stops
+    converging, and each such step is rejected and retried five times shorter: more steps
+    rejected than accepted, ten times the steps of Newton's method (docs/simulation.md, "Hard
+    cases"). Newton costs a Jacobian per iteration (forward-mode derivatives of the vector
+    field, one per state component); where the chord method converges it takes as many steps,
+    each cheaper.
+    """
+    return diffrax.Kvaerno5(root_finder=diffrax.with_stepsize_controller_tols(optx.Newton)())
+
+
 #: Solver presets: name -> (factory, adaptive).
 SOLVERS: dict[str, tuple[Callable[[], diffrax.AbstractSolver], bool]] = {
     "euler": (diffrax.Euler, False),
@@ -336,7 +354,7 @@ SOLVERS: dict[str, tuple[Callable[[], diffrax.AbstractSolver], bool]] = {
     "tsit5": (diffrax.Tsit5, True),
     "dopri5": (diffrax.Dopri5, True),
     "dopri8": (diffrax.Dopri8, True),
-    "kvaerno5": (diffrax.Kvaerno5, True),
+    "kvaerno5": (_kvaerno5, True),
 }
 
 
