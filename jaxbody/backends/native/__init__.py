@@ -64,6 +64,7 @@ operation list), :mod:`.codegen` (the C++ programs, from the templates shipped n
 dynamics), :mod:`.step`, :mod:`.solve` and :mod:`.energy` (one RK4 step, whole solves, energies).
 """
 
+from .adaptive import Control, adaptive_checkpoint_layout, adaptive_solve, adaptive_solve_vjp
 from .build import BUILDS, MAX_DOFS, SPIN_NS, WIDE_BATCH, applies, available, build_for, threads
 from .codegen import MODES
 from .energy import energies
@@ -74,6 +75,10 @@ from .symbolic import parameter_vector
 
 __all__ = [
     "BUILDS",
+    "Control",
+    "adaptive_checkpoint_layout",
+    "adaptive_solve",
+    "adaptive_solve_vjp",
     "MAX_DERIVATIVE_DOFS",
     "MAX_DOFS",
     "MODES",
