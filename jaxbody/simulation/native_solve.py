@@ -154,13 +154,14 @@ def _adaptive_outputs(y0, t1, saveat, q, v, w, status, saved) -> tuple:
     if main.ts is None:
         ts, ys = tf, yf
     else:
-        ts = jnp.where(jnp.arange(saved.shape[0]) < status[5], jnp.asarray(main.ts, dtype), jnp.inf)
+        ts = jnp.where(jnp.arange(saved.shape[0], dtype=status.dtype) < status[5], jnp.asarray(main.ts, dtype), jnp.inf)
         rows = saved
         if main.t1:
             ts, rows = jnp.concatenate([ts, tf]), jnp.concatenate([saved, final])
         ys = state(rows)
-    stats = {"num_steps": status[1].astype(jnp.int32), "num_accepted_steps": status[2].astype(jnp.int32),
-             "num_rejected_steps": status[3].astype(jnp.int32)}
+    count = jnp.result_type(int)  # diffrax's counters
+    stats = {"num_steps": status[1].astype(count), "num_accepted_steps": status[2].astype(count),
+             "num_rejected_steps": status[3].astype(count)}
     code = status[4]
     result = RESULTS.where(tf[0] < t1, RESULTS.max_steps_reached, RESULTS.successful)
     result = RESULTS.where(code == 2, RESULTS.dt_min_reached, result)

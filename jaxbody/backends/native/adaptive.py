@@ -141,7 +141,7 @@ def adaptive_solve(
     widths = kernel.widths + (max(n_ts * n, 1),) + ((width,) if checkpoints is not None else ())
     outs = kernel.batched_with(widths)(*rows)
     q1, v1, w1, status, ys = (o[0] for o in outs[:5])
-    saved = jnp.where(jnp.arange(n_ts)[:, None] < status[5], ys[: n_ts * n].reshape(n_ts, n), jnp.inf)
+    saved = jnp.where(jnp.arange(n_ts, dtype=status.dtype)[:, None] < status[5], ys[: n_ts * n].reshape(n_ts, n), jnp.inf)
     result = (q1, v1, w1[0], status, saved)
     return result + ((outs[5][0],) if checkpoints is not None else ())
 
