@@ -228,7 +228,8 @@ def _adaptive(scene, q0, v0, method, t1=0.3, **kw):
     return jb.simulate(scene, q0, v0, t1, solver=method, rtol=1e-8, atol=1e-8, **kw)
 
 
-@pytest.mark.parametrize("method,name", [("tsit5", "chain"), ("dopri5", "free_ball"), ("dopri8", "chain")])
+@pytest.mark.parametrize("method,name", [pytest.param("tsit5", "chain", marks=pytest.mark.slow), ("dopri5", "free_ball"),
+                                         pytest.param("dopri8", "chain", marks=pytest.mark.slow)])
 def test_adaptive_native_solve_equals_the_stepped_solve(method, name, monkeypatch):
     """An embedded pair under PID control on the native kernel, saving at the default 101 times
     (dense output) and at the end: one native call, the same accepted and rejected steps as
