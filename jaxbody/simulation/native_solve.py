@@ -1,15 +1,18 @@
-"""The one-call native RK4 solve: a whole fixed-step solve as one native program.
+"""The one-call native solves: a whole fixed-step RK4 or adaptive solve as one native program.
 
 A fixed-step ``"rk4"`` solve on the native kernel that keeps only its end state
-(``saveat=SaveAt(t1=True)``), of a scene of gravity, joint springs and joint dampers, without
-an event, runs as one native call (:func:`jaxbody.backends.native.rk4_rollout`) instead of diffrax's
-loop. It applies only there because only there does the native program compute exactly what
-the loop would: the same field (:func:`jaxbody.simulation.field.native_field`), the same steps,
-failures and result codes, and nothing saved between the ends that the program would have to
-hand back step by step. Its gradient with respect to the initial state is a native reverse
-sweep (:func:`jaxbody.backends.native.rk4_rollout_vjp`); any other derivative (the scene's parameters)
-goes through diffrax's loop, which is then run for the derivative alone.
-``$JAXBODY_NATIVE_SOLVE=0`` turns this off.
+(``saveat=SaveAt(t1=True)``), and an adaptive ``"tsit5"``, ``"dopri5"`` or ``"dopri8"`` solve under
+diffrax's ``PIDController`` that saves its end state and/or requested times, of a scene of
+gravity, joint springs and joint dampers, without an event, run as one native call
+(:func:`jaxbody.backends.native.rk4_rollout`, :func:`jaxbody.backends.native.adaptive_solve`) instead of
+diffrax's loop. They apply only there because only there does the native program compute
+exactly what the loop would: the same field (:func:`jaxbody.simulation.field.native_field`), the
+same steps (diffrax's step times; diffrax's tableaux, error estimate, controller and dense
+output), failures and result codes. The gradient of the end state with respect to the initial
+state is a native reverse sweep (:func:`jaxbody.backends.native.rk4_rollout_vjp`,
+:func:`jaxbody.backends.native.adaptive_solve_vjp`); any other derivative (the scene's parameters,
+saved times of an adaptive solve) goes through diffrax's loop, which is then run for the
+derivative alone. ``$JAXBODY_NATIVE_SOLVE=0`` turns this off.
 """
 
 import os
