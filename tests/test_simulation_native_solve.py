@@ -281,9 +281,10 @@ def test_adaptive_native_batch_members_keep_their_own_outcome(monkeypatch):
 
 
 def test_adaptive_native_gradient_against_finite_differences(monkeypatch):
-    """The gradient of an adaptive solve's end state with respect to (q0, v0) by the native
-    reverse sweep (accepted steps replayed from checkpoints; the quaternions' renormalisation and
-    the first-same-as-last stage reversed) against central differences of the native solve."""
+    """The gradient of an adaptive solve's saved states (dense output inside the steps) and end
+    state with respect to (q0, v0) by the native reverse sweep (accepted steps replayed from
+    checkpoints; the interpolant, the quaternions' renormalisation and the first-same-as-last
+    stage reversed) against central differences of the native solve."""
     model = _models()["free_ball"]
     scene = jb.scene(model, kernel="native", planar=False)
     q0, v0 = _state(model, 2)
@@ -292,8 +293,11 @@ def test_adaptive_native_gradient_against_finite_differences(monkeypatch):
     monkeypatch.setattr(native, "adaptive_solve_vjp", lambda *a, **kw: calls.append(1) or sweep(*a, **kw))
 
     def loss(q, v):
-        sol = _adaptive(scene, q, v, "tsit5", 0.2, saveat=diffrax.SaveAt(t1=True), max_steps=200)
-        return jnp.sum(jnp.sin(sol.q_final)) + jnp.sum(sol.v_final ** 2) + 3.0 * sol.work["dampers"][-1]
+        # saved times inside the steps (their dense output reversed) and the end state
+        sol = _adaptive(scene, q, v, "tsit5", 0.2, saveat=diffrax.SaveAt(ts=jnp.linspace(0.0, 0.2, 6), t1=True),
+                        max_steps=200)
+        weights = jnp.arange(1.0, sol.q.shape[0] + 1)[:, None]
+        return jnp.sum(weights * jnp.sin(sol.q)) + jnp.sum(sol.v_final ** 2) + 3.0 * jnp.sum(sol.work["dampers"])
 
     gq, gv = jax.jit(jax.grad(loss, argnums=(0, 1)))(q0, v0)
     assert calls, "the gradient did not take the native reverse sweep"
@@ -312,14 +316,18 @@ def test_adaptive_native_gradient_against_finite_differences(monkeypatch):
 @pytest.mark.parametrize("name", ["chain", "free_ball"])
 def test_adaptive_native_gradient_equals_the_stepped_solve(name, monkeypatch):
     """The native reverse sweep of an adaptive solve equals diffrax's checkpointed adjoint of the
-    same steps, with a checkpoint per accepted step and with segments replayed."""
+    same steps, with a checkpoint per accepted step and with segments replayed; the end state
+    (a free base), the states saved at requested times (a chain)."""
     model = _models()[name]
     scene = jb.scene(model, kernel="native", planar=False)
     q0, v0 = _state(model, 2)
 
+    saveat = diffrax.SaveAt(t1=True) if name == "free_ball" else diffrax.SaveAt(ts=jnp.linspace(0.0, 0.3, 7))
+
     def loss(q, v):
-        sol = _adaptive(scene, q, v, "dopri8", 0.3, saveat=diffrax.SaveAt(t1=True), max_steps=100)
-        return jnp.sum(jnp.sin(sol.q_final)) + jnp.sum(sol.v_final ** 2) + 3.0 * sol.work["dampers"][-1]
+        sol = _adaptive(scene, q, v, "dopri8", 0.3, saveat=saveat, max_steps=100)
+        weights = jnp.arange(1.0, sol.q.shape[0] + 1)[:, None]
+        return jnp.sum(weights * jnp.sin(sol.q)) + jnp.sum(sol.v_final ** 2) + 3.0 * jnp.sum(sol.work["dampers"])
 
     grad = lambda: jax.jit(jax.grad(loss, argnums=(0, 1)))(q0, v0)  # noqa: E731
     every_step = grad()

@@ -8,10 +8,10 @@ gravity, joint springs and joint dampers, without an event, run as one native ca
 diffrax's loop. They apply only there because only there does the native program compute
 exactly what the loop would: the same field (:func:`jaxbody.simulation.field.native_field`), the
 same steps (diffrax's step times; diffrax's tableaux, error estimate, controller and dense
-output), failures and result codes. The gradient of the end state with respect to the initial
-state is a native reverse sweep (:func:`jaxbody.backends.native.rk4_rollout_vjp`,
-:func:`jaxbody.backends.native.adaptive_solve_vjp`); any other derivative (the scene's parameters,
-saved times of an adaptive solve) goes through diffrax's loop, which is then run for the
+output), failures and result codes. The gradient with respect to the initial state is a native
+reverse sweep (:func:`jaxbody.backends.native.rk4_rollout_vjp`,
+:func:`jaxbody.backends.native.adaptive_solve_vjp`); any other derivative (the scene's parameters) goes
+through diffrax's loop, which is then run for the
 derivative alone. ``$JAXBODY_NATIVE_SOLVE=0`` turns this off.
 """
 
@@ -182,13 +182,12 @@ def native_adaptive_solve(scene, y0, t0, t1, dt0, valid, max_steps, slots, metho
     return _adaptive_outputs(y0, t1, saveat, *out)
 
 
-def native_adaptive_reverse(adjoint, max_steps, slots, y0, method, saveat):
-    """``(forward, backward)`` of :func:`native_or_stepped` for an adaptive solve that saves its
-    end state alone, by the native reverse sweep (:func:`jaxbody.backends.native.adaptive_solve_vjp`),
-    its checkpoints planned as :func:`native_reverse` plans them; ``None`` otherwise (requested
-    times, or no bounded step budget: diffrax's loop differentiates)."""
-    main = _main_save(saveat)
-    if max_steps is None or main.ts is not None:
+def native_adaptive_reverse(adjoint, max_steps, slots, y0, method):
+    """``(forward, backward)`` of :func:`native_or_stepped` for an adaptive solve by the native
+    reverse sweep (:func:`jaxbody.backends.native.adaptive_solve_vjp`; the saved states' cotangents
+    through each step's dense output), its checkpoints planned as :func:`native_reverse` plans
+    them; ``None`` without a bounded step budget (diffrax's loop differentiates)."""
+    if max_steps is None:
         return None
     checkpoints = adjoint.checkpoints
     if checkpoints is None:
@@ -196,11 +195,12 @@ def native_adaptive_reverse(adjoint, max_steps, slots, y0, method, saveat):
     held = []
 
     def forward(rest, y0):
-        scene, t0, t1, dt0, valid, _, controller = rest[:7]
+        scene, t0, t1, dt0, valid, _, controller, _, saveat = rest
+        main = _main_save(saveat)
         model, kwargs = _adaptive_arguments(scene, y0, valid, slots, controller)
         t1 = _forward_in_time(t0, t1, 1.0)
         *out, saved = native.adaptive_solve(model, method, y0[0], y0[1], t0, t1, dt0=dt0, max_steps=max_steps,
-                                            checkpoints=checkpoints, **kwargs)
+                                            ts=main.ts, checkpoints=checkpoints, **kwargs)
         # residuals are arrays: the rest (the controller's norm, the solver) is held here
         dynamic, static = eqx.partition(rest, eqx.is_array)
         held.append(static)
@@ -208,14 +208,26 @@ def native_adaptive_reverse(adjoint, max_steps, slots, y0, method, saveat):
 
     def backward(residuals, cotangents):
         dynamic, y0, saved, status = residuals
-        scene, t0, t1, dt0, valid, _, controller, *_ = eqx.combine(dynamic, held[-1])
+        scene, t0, t1, dt0, valid, _, controller, _, saveat = eqx.combine(dynamic, held[-1])
+        main = _main_save(saveat)
         _, ys, _, yf, _, _ = cotangents
-        ct = [_instantiate(a)[0] + _instantiate(b)[0] for a, b in zip(ys, yf)]
+        ys = [_instantiate(a) for a in ys]
+        ct = [_instantiate(b)[0] for b in yf]
+        ct_saved = None
+        if main.ts is None:
+            ct = [a[0] + b for a, b in zip(ys, ct)]  # the end state is the saved point
+        else:
+            if main.t1:  # the end state saved after the requested times
+                ct = [a[-1] + b for a, b in zip(ys, ct)]
+                ys = [a[:-1] for a in ys]
+            rows = list(ys[:2]) + [ys[2] if len(ys) == 3 else jnp.zeros((ys[0].shape[0], 1), ys[0].dtype)]
+            ct_saved = jnp.concatenate(rows, axis=1)
         model, kwargs = _adaptive_arguments(scene, y0, valid, slots, controller)
         work = ct[2][0] if len(y0) == 3 else 0.0
         ct_q, ct_v, ct_w = native.adaptive_solve_vjp(model, method, y0[0], y0[1], t0, t1, dt0=dt0, max_steps=max_steps,
                                                      checkpoints=checkpoints, saved=saved, status=status,
-                                                     cotangent_q=ct[0], cotangent_v=ct[1], cotangent_work=work, **kwargs)
+                                                     cotangent_q=ct[0], cotangent_v=ct[1], cotangent_work=work,
+                                                     ts=main.ts, cotangent_saved=ct_saved, **kwargs)
         return (ct_q, ct_v) + ((jnp.reshape(ct_w, (1,)).astype(y0[2].dtype),) if len(y0) == 3 else ())
 
     return forward, backward

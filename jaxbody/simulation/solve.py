@@ -249,26 +249,28 @@ def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps,
     else:
         # one native call; derivatives by the native reverse sweep (initial state alone) or
         # through the step-by-step solve
+        # the save times travel in `rest` (arrays of a custom VJP's primal function are its
+        # arguments, not closed over)
         def stepped(rest, y0):
-            scene, t0, t1, dt0, valid, solver, controller, adjoint = rest
+            scene, t0, t1, dt0, valid, solver, controller, adjoint, saveat = rest
             return integrate(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps, adjoint, meter,
                              event, dense, slots)[0]
 
         method = native_method(solver, controller)
 
         def native(rest, y0):
-            scene, t0, t1, dt0, valid, _, controller = rest[:7]
+            scene, t0, t1, dt0, valid, _, controller, _, saveat = rest
             if method == "rk4":
                 return native_solve(scene, y0, t0, t1, dt0, valid, max_steps, slots)
             return native_adaptive_solve(scene, y0, t0, t1, dt0, valid, max_steps, slots, method, controller, saveat)
 
-        rest = (scene, t0, t1, dt0, valid, solver, controller, adjoint)
+        rest = (scene, t0, t1, dt0, valid, solver, controller, adjoint, saveat)
         # the native reverse sweep keeps checkpoints as the checkpointed adjoint would; another
         # adjoint asked for its own way of differentiating, which the stepped solve honours
         reverse = None
         if isinstance(adjoint, diffrax.RecursiveCheckpointAdjoint):
             reverse = (native_reverse(adjoint, max_steps, slots, y0) if method == "rk4"
-                       else native_adaptive_reverse(adjoint, max_steps, slots, y0, method, saveat))
+                       else native_adaptive_reverse(adjoint, max_steps, slots, y0, method))
         ts, ys, tf, yf, stats, result = native_or_stepped(rest, y0, native, stepped, reverse)
     q, v = ys[0], ys[1]
     finite = jnp.all(jnp.isfinite(q), axis=-1) & jnp.all(jnp.isfinite(v), axis=-1)

@@ -147,20 +147,22 @@ def adaptive_solve(
 
 
 def adaptive_solve_vjp(model: Model, method: str, q, v, t0, t1, control: Control, dt0, max_steps: int, checkpoints: int,
-                       saved, status, cotangent_q, cotangent_v, cotangent_work=0.0, force=None, *, gravity=None,
-                       stiffness=None, reference=None, damping=None, work0=0.0, has_work=False, frozen=False):
-    """Reverse mode of :func:`adaptive_solve` (end state only) with respect to the initial
-    ``(q, v, w)``, in one native call: the accepted steps replayed from the checkpoints
-    ``saved`` (:func:`adaptive_solve` with ``checkpoints``) and reversed through the field's
-    generated reverse-mode program, the step sizes held (diffrax, too, stops the gradient through
-    the controller). Returns the cotangents of ``(q, v, w)``."""
+                       saved, status, cotangent_q, cotangent_v, cotangent_work=0.0, force=None, *, ts=None,
+                       cotangent_saved=None, gravity=None, stiffness=None, reference=None, damping=None, work0=0.0,
+                       has_work=False, frozen=False):
+    """Reverse mode of :func:`adaptive_solve` with respect to the initial ``(q, v, w)``, in one
+    native call: the accepted steps replayed from the checkpoints ``saved`` (:func:`adaptive_solve`
+    with ``checkpoints``) and reversed through the field's generated reverse-mode program, the
+    step sizes held (diffrax, too, stops the gradient through the controller). ``cotangent_*``:
+    of the final state and work, and of the states saved at ``ts`` (``(n_ts, nq + nv + 1)``;
+    through each step's dense output). Returns the cotangents of ``(q, v, w)``."""
     every, _ = adaptive_checkpoint_layout(model, max_steps, checkpoints)
-    rows, _ = _rows(model, method, q, v, t0, t1, dt0, max_steps, control, None, force, gravity, stiffness, reference,
-                    damping, work0, has_work, frozen, every)
+    rows, n_ts = _rows(model, method, q, v, t0, t1, dt0, max_steps, control, ts, force, gravity, stiffness, reference,
+                       damping, work0, has_work, frozen, every)
     dtype = model.body_pos.dtype
     row = lambda x: jnp.reshape(jnp.asarray(x, dtype), (1, -1))  # noqa: E731
+    ct_saved = jnp.zeros((1,), dtype) if cotangent_saved is None or n_ts == 0 else cotangent_saved
     kernel = compiled_kernel(model.tree, model.joints, False, np.dtype(dtype), f"adaptive_vjp:{method}")
     ct_q, ct_v, ct_w = kernel.batched(*rows[:11], row(saved), row(status), row(cotangent_q), row(cotangent_v),
-                                      row(cotangent_work))
+                                      row(cotangent_work), rows[11], row(ct_saved))
     return ct_q[0], ct_v[0], ct_w[0, 0]
-

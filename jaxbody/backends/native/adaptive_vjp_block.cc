@@ -20,16 +20,22 @@ static inline V vpow(V x, T p) {
 static void adaptive_vjp_block(const Inputs& in, int64_t b0, int n) {
 @ACCESS@
 @INVARIANT@
-  constexpr int NQ = @NQ@, NV = @NV@, N = NQ + NV + 1, S = @S@;
+  constexpr int NQ = @NQ@, NV = @NV@, N = NQ + NV + 1, S = @S@, D = @D@;
   static const T A[S][S] = @A@;
   static const T E[S] = @E@;
+  static const T P[S][D] = @P@;
   const U t1 = ld(10, 1), t1_floor = ld(10, 2), max_steps = ld(10, 3);
   const U rtol = ld(10, 5), atol = ld(10, 6), dtmin = ld(10, 10), dtmax = ld(10, 11);
   const T pcoeff = ld(10, 7)[0], icoeff = ld(10, 8)[0], dcoeff = ld(10, 9)[0], order = ld(10, 16)[0];
   const bool force_dtmin = ld(10, 12)[0] != T(0), has_work = ld(10, 18)[0] != T(0), has_dtmin = ld(10, 20)[0] != T(0);
   const T factormin = ld(10, 13)[0], factormax = ld(10, 14)[0], safety = ld(10, 15)[0];
   const I frozen = ld(10, 17) != T(0);
-  const int64_t every = int64_t(ld(10, 19)[0]);
+  const int64_t every = int64_t(ld(10, 19)[0]), n_ts = int64_t(ld(10, 21)[0]);
+  // the save times (operand 16) and the cotangents of the saved states (operand 17)
+  const T* ts = in.x[16];
+  const int64_t ts_stride = in.s[16];
+  const T* ct_saved = in.x[17];
+  const int64_t ct_stride = in.s[17];
   const T c1 = (icoeff + pcoeff + dcoeff) / order, c2 = -(pcoeff + T(2) * dcoeff) / order, c3 = dcoeff / order;
   const int count = NQ + NV + (has_work ? 1 : 0);
   auto evaluate = [&](const U* sy, U* f) {
@@ -61,7 +67,7 @@ static void adaptive_vjp_block(const Inputs& in, int64_t b0, int n) {
   for (int i = 0; i < N; ++i) pend[i] = U{};
   int64_t total = 0;
   for (int l = 0; l < n; ++l) total = int64_t(taken[l]) > total ? int64_t(taken[l]) : total;
-  constexpr int CK = 3 * N + 7, KEPT = 3 * N + 1;
+  constexpr int CK = 3 * N + 7, KEPT = 3 * N + 4;
   std::unique_ptr<V[]> kept(new V[every * KEPT]);
   U y[N], fs[N], u[N], k[S][N], ys[N], yp[N], Y[S][N], lk[S][N], ly[N], r[N];
   for (int64_t seg = (total - 1) / every; seg >= 0 && total > 0; --seg) {
@@ -78,6 +84,12 @@ static void adaptive_vjp_block(const Inputs& in, int64_t b0, int n) {
       at_dtmin[l] = row[3 * N + 4] != T(0) ? -1 : 0;
       steps[l] = row[3 * N + 5];
     }
+    int64_t saved[W];
+    for (int l = 0; l < W; ++l) {
+      const int ll = l < n ? l : n - 1;
+      const int64_t slot = first < int64_t(taken[ll]) ? seg : 0;
+      saved[l] = int64_t(in.x[11][(b0 + ll) * in.s[11] + slot * CK + 3 * N + 6]);
+    }
     I code = I{};
     U end = taken < T(first + every) ? taken : U{} + T(first + every);
     // replay: keep each accepted step's start (y, u, fs) and length
@@ -93,6 +105,13 @@ static void adaptive_vjp_block(const Inputs& in, int64_t b0, int n) {
         V* row = &kept[(int64_t(accepted[l]) - first) * KEPT];
         for (int i = 0; i < N; ++i) row[i][l] = y[i][l], row[N + i][l] = u[i][l], row[2 * N + i][l] = fs[i][l];
         row[3 * N][l] = h[l];
+        row[3 * N + 1][l] = tprev[l];
+        // the saves this step made (as the solve makes them)
+        const int ll = l < n ? l : n - 1;
+        const T* trow = ts + (b0 + ll) * ts_stride;
+        row[3 * N + 2][l] = T(saved[l]);
+        while (saved[l] < n_ts && trow[saved[l]] <= tnext[l]) ++saved[l];
+        row[3 * N + 3][l] = T(saved[l]);
       }
       for (int i = 0; i < N; ++i) {
         y[i] = moved ? yp[i] : y[i];
@@ -131,11 +150,34 @@ static void adaptive_vjp_block(const Inputs& in, int64_t b0, int n) {
       for (int i = 0; i < N; ++i) ly0[i] = U{};
       for (int s = 0; s < S; ++s)
         for (int i = 0; i < N; ++i) lk[s][i] = U{};
+      // the states saved in this step, y₀ + Σₛ Bₛ(θ) (h fₛ): their cotangents
+      bool dense = false;  // a save in this step: the last stage's field enters through the interpolant
+      for (int l = 0; l < n; ++l) {
+        if (!active[l]) continue;
+        dense |= row[3 * N + 3][l] > row[3 * N + 2][l];
+        const T* trow = ts + (b0 + l) * ts_stride;
+        const T* crow = ct_saved + (b0 + l) * ct_stride;
+        const T tp = row[3 * N + 1][l], span = h[l];
+        for (int64_t idx = int64_t(row[3 * N + 2][l]); idx < int64_t(row[3 * N + 3][l]); ++idx) {
+          const T theta = span == T(0) ? T(0) : (trow[idx] - tp) / span;
+          for (int s = 0; s < S; ++s) {
+            T acc = P[s][D - 1];
+            for (int p = D - 2; p >= 0; --p) acc = acc * theta + P[s][p];
+            for (int i = 0; i < N; ++i) lk[s][i][l] += acc * span * crow[idx * N + i];
+          }
+          for (int i = 0; i < N; ++i) ly0[i][l] += crow[idx * N + i];
+        }
+      }
       for (int s = S - 1; s >= 1; --s) {
         if (s < S - 1) {
           evaluate_vjp(Y[s], lk[s], r);
           for (int i = 0; i < NQ + NV; ++i) ly[i] = r[i];
           ly[N - 1] = U{};
+        } else if (dense) {
+          // the last stage's input is the solution (its cotangent so far) and the field there
+          // feeds the saved states
+          evaluate_vjp(Y[s], lk[s], r);
+          for (int i = 0; i < NQ + NV; ++i) ly[i] += r[i];
         }
         // this stage's input: y0 + (Σⱼ aₛⱼ fⱼ) h
         for (int i = 0; i < N; ++i) {
