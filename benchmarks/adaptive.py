@@ -202,7 +202,10 @@ def main():
           "`mj_forward` (its distance to jaxbody's native Dopri8 at the tightest tolerance given as the reference's "
           "convergence); one trajectory, float64, wall time of a compiled call (fastest of several). For each solve, the cheapest "
           "sweep point reaching the target error, and its time over MuJoCo RK4's (`mujoco.rollout`) at the largest "
-          "timestep of the sweep reaching it. Targets: at most 1/50 on the pendulum at 1e-8, 1/10 on Panda at 1e-6.", ""]
+          "timestep of the sweep reaching it. Targets: at most 1/50 on the pendulum at 1e-8, 1/10 on Panda at 1e-6.", "",
+          "Panda: under gravity and its joints' damping from a bent pose, no torque (a time-dependent torque keeps "
+          "diffrax's loop: the native field holds the joint force constant). On a shared machine a short call timed "
+          "as the fastest of several catches quieter moments than a long one: compare the load averages.", ""]
     for name, rec in results.items():
         md += [f"## {name}: {rec['t1']} s, target error {rec['target']:g} (reference convergence "
                f"{rec['reference_convergence']:.1e})", ""]
