@@ -295,7 +295,7 @@ def native_reverse(adjoint, max_steps, slots, y0):
         t1 = _forward_in_time(t0, t1, dt0)
         *out, saved = native.rk4_rollout_checkpointed(model, y0[0], y0[1], t0, t1, dt0, max_steps, checkpoints, work0=w0,
                                                **kwargs)
-        return _native_outputs(y0, t1, slots, *out), (rest, y0, saved, out[4])
+        return _native_outputs(y0, t1, slots, *out), (rest[:5], y0, saved, out[4])
 
     def backward(residuals, cotangents):
         (scene, t0, t1, dt0, valid, *_), y0, saved, steps = residuals
