@@ -221,3 +221,119 @@ def test_native_solve_in_float32_stays_near_float64():
     assert b.q.dtype == jnp.float32 and bool(b.success)
     assert float(jnp.max(jnp.abs(b.q.astype(jnp.float64) - a.q))) <= 1e-4
     assert float(jnp.max(jnp.abs(b.v.astype(jnp.float64) - a.v))) <= 1e-4 * max(1.0, float(jnp.max(jnp.abs(a.v))))
+
+
+# ----------------------------------------------------------------------------- adaptive solves
+def _adaptive(scene, q0, v0, method, t1=0.3, **kw):
+    return jb.simulate(scene, q0, v0, t1, solver=method, rtol=1e-8, atol=1e-8, **kw)
+
+
+@pytest.mark.parametrize("method,name", [pytest.param("tsit5", "chain", marks=pytest.mark.slow), ("dopri5", "free_ball"),
+                                         pytest.param("dopri8", "chain", marks=pytest.mark.slow)])
+def test_adaptive_native_solve_equals_the_stepped_solve(method, name, monkeypatch):
+    """An embedded pair under PID control on the native kernel, saving at the default 101 times
+    (dense output) and at the end: one native call, the same accepted and rejected steps as
+    diffrax's loop and every field of the solution equal to it (springs, dampers and their work;
+    a free base and a ball joint's quaternions)."""
+    model = _models()[name]
+    calls = []
+    solve = native.adaptive_solve
+    monkeypatch.setattr(native, "adaptive_solve", lambda *a, **kw: calls.append(1) or solve(*a, **kw))
+    scene = jb.scene(model, kernel="native", planar=False)
+    q0, v0 = _state(model)
+    a = _adaptive(scene, q0, v0, method)
+    assert calls, "simulate did not take the native adaptive solve"
+    assert a.q.shape[0] == 101
+    _stepped(monkeypatch)
+    calls.clear()
+    b = _adaptive(scene, q0, v0, method)
+    assert not calls
+    for key in ("num_steps", "num_accepted_steps", "num_rejected_steps"):
+        assert int(a.stats[key]) == int(b.stats[key]), key
+    _leaves_close(a, b, 1e-10)
+
+
+def test_adaptive_native_batch_members_keep_their_own_outcome(monkeypatch):
+    """A vmap batch of one native call, ``throw=False``: an invalid input (NaN), a member whose
+    step budget runs out, members with their own end times: each member equals its own
+    unbatched solve and the batch equals diffrax's loop (result codes, step counts, states)."""
+    model = _models()["chain"]
+    scene = jb.scene(model, kernel="native", planar=False)
+    q0, v0 = _state(model)
+    rng = np.random.default_rng(1)
+    vs = jnp.asarray(rng.standard_normal((5, model.nv))).at[2, 0].set(jnp.nan).at[4].multiply(40.0)
+    qs = jnp.tile(q0, (5, 1))
+    t1s = jnp.linspace(0.1, 0.4, 5)
+
+    def one(q, v, t1):
+        return _adaptive(scene, q, v, "dopri5", t1, throw=False, max_steps=40, saveat=diffrax.SaveAt(t1=True))
+
+    a = jax.jit(jax.vmap(one))(qs, vs, t1s)
+    R = jb.RESULTS
+    codes = a.result._value.tolist()
+    assert codes[2] == int(R.invalid_input._value) and codes[4] == int(R.max_steps_reached._value)
+    assert codes[0] == int(R.successful._value)
+    single = jax.jit(one)
+    for i in (0, 3, 4):
+        _leaves_close(jax.tree.map(lambda x: x[i], a), single(qs[i], vs[i], t1s[i]), 0.0)
+    _stepped(monkeypatch)
+    _leaves_close(a, jax.jit(jax.vmap(one))(qs, vs, t1s), 1e-10)
+
+
+def test_adaptive_native_gradient_against_finite_differences(monkeypatch):
+    """The gradient of an adaptive solve's saved states (dense output inside the steps) and end
+    state with respect to (q0, v0) by the native reverse sweep (accepted steps replayed from
+    checkpoints; the interpolant, the quaternions' renormalisation and the first-same-as-last
+    stage reversed) against central differences of the native solve."""
+    model = _models()["free_ball"]
+    scene = jb.scene(model, kernel="native", planar=False)
+    q0, v0 = _state(model, 2)
+    calls = []
+    sweep = native.adaptive_solve_vjp
+    monkeypatch.setattr(native, "adaptive_solve_vjp", lambda *a, **kw: calls.append(1) or sweep(*a, **kw))
+
+    def loss(q, v):
+        # saved times inside the steps (their dense output reversed) and the end state
+        sol = _adaptive(scene, q, v, "tsit5", 0.2, saveat=diffrax.SaveAt(ts=jnp.linspace(0.0, 0.2, 6), t1=True),
+                        max_steps=200)
+        weights = jnp.arange(1.0, sol.q.shape[0] + 1)[:, None]
+        return jnp.sum(weights * jnp.sin(sol.q)) + jnp.sum(sol.v_final ** 2) + 3.0 * jnp.sum(sol.work["dampers"])
+
+    gq, gv = jax.jit(jax.grad(loss, argnums=(0, 1)))(q0, v0)
+    assert calls, "the gradient did not take the native reverse sweep"
+    x0 = jnp.concatenate([q0, v0])
+    eps = 1e-6
+    shifts = eps * jnp.concatenate([jnp.eye(x0.size), -jnp.eye(x0.size)])
+    values = jax.jit(jax.vmap(lambda d: loss((x0 + d)[: model.nq], (x0 + d)[model.nq :])))(shifts)
+    fd = (values[: x0.size] - values[x0.size :]) / (2 * eps)
+    g = jnp.concatenate([gq, gv])
+    assert float(jnp.max(jnp.abs(g))) > 1e-2
+    # the step sizes are held in the gradient (as diffrax holds them): differences see them move
+    assert float(jnp.max(jnp.abs(g - fd))) <= 1e-5 * max(1.0, float(jnp.max(jnp.abs(fd)))), (g, fd)
+
+
+@pytest.mark.slow  # the step-by-step gradient's compilation
+@pytest.mark.parametrize("name", ["chain", "free_ball"])
+def test_adaptive_native_gradient_equals_the_stepped_solve(name, monkeypatch):
+    """The native reverse sweep of an adaptive solve equals diffrax's checkpointed adjoint of the
+    same steps, with a checkpoint per accepted step and with segments replayed; the end state
+    (a free base), the states saved at requested times (a chain)."""
+    model = _models()[name]
+    scene = jb.scene(model, kernel="native", planar=False)
+    q0, v0 = _state(model, 2)
+
+    saveat = diffrax.SaveAt(t1=True) if name == "free_ball" else diffrax.SaveAt(ts=jnp.linspace(0.0, 0.3, 7))
+
+    def loss(q, v):
+        sol = _adaptive(scene, q, v, "dopri8", 0.3, saveat=saveat, max_steps=100)
+        weights = jnp.arange(1.0, sol.q.shape[0] + 1)[:, None]
+        return jnp.sum(weights * jnp.sin(sol.q)) + jnp.sum(sol.v_final ** 2) + 3.0 * jnp.sum(sol.work["dampers"])
+
+    grad = lambda: jax.jit(jax.grad(loss, argnums=(0, 1)))(q0, v0)  # noqa: E731
+    every_step = grad()
+    monkeypatch.setattr(simulation, "CHECKPOINT_BYTES", 3 * 3 * (model.nq + model.nv) * 8)
+    segments = grad()
+    _stepped(monkeypatch)
+    reference = grad()
+    _leaves_close(every_step, reference, 1e-9)
+    _leaves_close(segments, reference, 1e-9)

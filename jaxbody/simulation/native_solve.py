@@ -1,15 +1,18 @@
-"""The one-call native RK4 solve: a whole fixed-step solve as one native program.
+"""The one-call native solves: a whole fixed-step RK4 or adaptive solve as one native program.
 
 A fixed-step ``"rk4"`` solve on the native kernel that keeps only its end state
-(``saveat=SaveAt(t1=True)``), of a scene of gravity, joint springs and joint dampers, without
-an event, runs as one native call (:func:`jaxbody.backends.native.rk4_rollout`) instead of diffrax's
-loop. It applies only there because only there does the native program compute exactly what
-the loop would: the same field (:func:`jaxbody.simulation.field.native_field`), the same steps,
-failures and result codes, and nothing saved between the ends that the program would have to
-hand back step by step. Its gradient with respect to the initial state is a native reverse
-sweep (:func:`jaxbody.backends.native.rk4_rollout_vjp`); any other derivative (the scene's parameters)
-goes through diffrax's loop, which is then run for the derivative alone.
-``$JAXBODY_NATIVE_SOLVE=0`` turns this off.
+(``saveat=SaveAt(t1=True)``), and an adaptive ``"tsit5"``, ``"dopri5"`` or ``"dopri8"`` solve under
+diffrax's ``PIDController`` that saves its end state and/or requested times, of a scene of
+gravity, joint springs and joint dampers, without an event, run as one native call
+(:func:`jaxbody.backends.native.rk4_rollout`, :func:`jaxbody.backends.native.adaptive_solve`) instead of
+diffrax's loop. They apply only there because only there does the native program compute
+exactly what the loop would: the same field (:func:`jaxbody.simulation.field.native_field`), the
+same steps (diffrax's step times; diffrax's tableaux, error estimate, controller and dense
+output), failures and result codes. The gradient with respect to the initial state is a native
+reverse sweep (:func:`jaxbody.backends.native.rk4_rollout_vjp`,
+:func:`jaxbody.backends.native.adaptive_solve_vjp`); any other derivative (the scene's parameters) goes
+through diffrax's loop, which is then run for the
+derivative alone. ``$JAXBODY_NATIVE_SOLVE=0`` turns this off.
 """
 
 import os
@@ -18,6 +21,7 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import optimistix as optx
 from jax.custom_derivatives import SymbolicZero
 
 # the module, not its functions: read at call time, so a test can intercept the native calls
@@ -27,7 +31,11 @@ from .field import native_field
 from .solution import RESULTS
 from .solvers import Guarded, RK4Stages
 
-__all__ = ["native_solve_enabled", "native_solve_applies", "native_solve", "native_reverse", "native_or_stepped"]
+__all__ = ["native_solve_enabled", "native_solve_applies", "native_solve", "native_reverse", "native_or_stepped",
+           "native_method"]
+
+# the embedded pairs with a native adaptive solve, by diffrax solver class
+_ADAPTIVE = {diffrax.Tsit5: "tsit5", diffrax.Dopri5: "dopri5", diffrax.Dopri8: "dopri8"}
 
 # the save function of a SubSaveAt that saves the state itself (diffrax's default)
 _SAVE_STATE = diffrax.SubSaveAt(t1=True).fn
@@ -40,23 +48,53 @@ def native_solve_enabled() -> bool:
     return os.environ.get("JAXBODY_NATIVE_SOLVE", "1") != "0"
 
 
-def native_solve_applies(scene, y0, solver, controller, saveat, adjoint, meter, event, dense, slots) -> bool:
-    """Whether a solve can run as one native call (:func:`jaxbody.backends.native.rk4_rollout`): RK4 at
-    constant steps on a scene whose field the native programs compute (:func:`jaxbody.simulation.field.native_field`),
-    saving the end state alone, without an event, dense output or progress meter, under an
-    adjoint that differentiates in reverse mode."""
+def native_method(solver, controller) -> str | None:
+    """The native program of a solve: ``"rk4"`` (RK4 at constant steps, recording each
+    trajectory's failure), the name of an embedded pair under diffrax's ``PIDController``
+    (``"tsit5"``, ``"dopri5"``, ``"dopri8"``: :func:`jaxbody.backends.native.adaptive_solve`), or ``None``."""
     # exact types: a subclass or another wrapper (a re-partitioning solver) may step differently
-    if type(solver) is not Guarded or not solver.record or type(solver.solver) is not RK4Stages:
-        return False
-    if type(controller) is not diffrax.ConstantStepSize or event is not None or dense:
+    if type(solver) is not Guarded:
+        return None
+    if solver.record and type(solver.solver) is RK4Stages and type(controller) is diffrax.ConstantStepSize:
+        return "rk4"
+    method = _ADAPTIVE.get(type(solver.solver))
+    # PIDController's own loop (no step_ts/jump_ts: those make it a ClipStepSizeController), its
+    # RMS norm and the solver's error order
+    if method is None or solver.record or type(controller) is not diffrax.PIDController:
+        return None
+    if controller.norm is not optx.rms_norm or controller.error_order is not None:
+        return None
+    return method
+
+
+def _main_save(saveat):
+    return saveat.subs if saveat.subs is not None else diffrax.SubSaveAt(ts=saveat.ts, t0=saveat.t0, t1=saveat.t1,
+                                                                         steps=saveat.steps)
+
+
+def native_solve_applies(scene, y0, solver, controller, saveat, adjoint, meter, event, dense, slots) -> bool:
+    """Whether a solve can run as one native call: RK4 at constant steps saving the end state
+    alone (:func:`jaxbody.backends.native.rk4_rollout`), or an embedded pair under PID control saving
+    the end state and/or requested times (:func:`jaxbody.backends.native.adaptive_solve`), on a scene whose
+    field the native programs compute (:func:`jaxbody.simulation.field.native_field`), without an
+    event, dense output or progress meter, under an adjoint that differentiates in reverse mode."""
+    method = native_method(solver, controller)
+    if method is None or event is not None or dense:
         return False
     # the native program has no tangent rule: forward mode stays in diffrax's loop
     if not isinstance(meter, diffrax.NoProgressMeter) or isinstance(adjoint, diffrax.ForwardMode):
         return False
-    main = saveat.subs if saveat.subs is not None else diffrax.SubSaveAt(ts=saveat.ts, t0=saveat.t0, t1=saveat.t1, steps=saveat.steps)
-    if not isinstance(main, diffrax.SubSaveAt) or not main.t1 or main.t0 or main.ts is not None or main.steps:
+    main = _main_save(saveat)
+    if not isinstance(main, diffrax.SubSaveAt) or main.t0 or main.steps or main.fn is not _SAVE_STATE:
         return False
-    return main.fn is _SAVE_STATE and native_field(scene, y0, slots) is not None
+    if method == "rk4" and (not main.t1 or main.ts is not None):
+        return False
+    if method != "rk4" and (main.ts is None and not main.t1 or main.ts is not None and jnp.ndim(main.ts) != 1):
+        return False
+    # the adaptive program's work slot is one number (the dampers' work)
+    if method != "rk4" and len(y0) == 3 and jnp.size(y0[2]) != 1:
+        return False
+    return native_field(scene, y0, slots) is not None
 
 
 def _native_arguments(scene, y0, valid, slots) -> tuple:
@@ -95,6 +133,104 @@ def native_solve(scene, y0, t0, t1, dt0, valid, max_steps, slots):
     t1 = _forward_in_time(t0, t1, dt0)
     out = native.rk4_rollout(model, y0[0], y0[1], t0, t1, dt0, max_steps, work0=w0, **kwargs)
     return _native_outputs(y0, t1, slots, *out)
+
+
+def _adaptive_arguments(scene, y0, valid, slots, controller):
+    model, kwargs = _native_arguments(scene, y0, valid, slots)
+    kwargs.update(work0=y0[2][0] if len(y0) == 3 else 0.0, has_work=len(y0) == 3, control=native.Control.of(controller))
+    return model, kwargs
+
+
+def _adaptive_outputs(y0, t1, saveat, q, v, w, status, saved) -> tuple:
+    """:func:`jaxbody.simulation.solve.integrate`'s outputs from the adaptive program's: the
+    requested times (unsaved ones ``inf``, as diffrax pads them) and/or the end state."""
+    dtype = y0[0].dtype
+    main = _main_save(saveat)
+    nq, nv = y0[0].shape[0], y0[1].shape[0]
+
+    def state(rows):
+        return (rows[:, :nq], rows[:, nq : nq + nv]) + ((rows[:, nq + nv :].astype(dtype),) if len(y0) == 3 else ())
+
+    final = jnp.concatenate([q, v, jnp.reshape(w, (1,))])[None]
+    tf = status[0].astype(dtype)[None]
+    yf = state(final)
+    if main.ts is None:
+        ts, ys = tf, yf
+    else:
+        ts = jnp.where(jnp.arange(saved.shape[0], dtype=status.dtype) < status[5], jnp.asarray(main.ts, dtype), jnp.inf)
+        rows = saved
+        if main.t1:
+            ts, rows = jnp.concatenate([ts, tf]), jnp.concatenate([saved, final])
+        ys = state(rows)
+    count = jnp.result_type(int)  # diffrax's counters
+    stats = {"num_steps": status[1].astype(count), "num_accepted_steps": status[2].astype(count),
+             "num_rejected_steps": status[3].astype(count)}
+    code = status[4]
+    result = RESULTS.where(tf[0] < t1, RESULTS.max_steps_reached, RESULTS.successful)
+    result = RESULTS.where(code == 2, RESULTS.dt_min_reached, result)
+    result = RESULTS.where(code == 1, RESULTS.nonfinite, result)
+    return ts, ys, tf, yf, stats, result
+
+
+def native_adaptive_solve(scene, y0, t0, t1, dt0, valid, max_steps, slots, method, controller, saveat):
+    """The solve of :func:`jaxbody.simulation.solve.integrate` by an embedded pair as one native
+    call per batch (:func:`jaxbody.backends.native.adaptive_solve`): ``(ts, ys, tf, yf, stats, result)``."""
+    model, kwargs = _adaptive_arguments(scene, y0, valid, slots, controller)
+    t1 = _forward_in_time(t0, t1, 1.0)
+    ts = _main_save(saveat).ts
+    out = native.adaptive_solve(model, method, y0[0], y0[1], t0, t1, dt0=dt0, max_steps=max_steps, ts=ts, **kwargs)
+    return _adaptive_outputs(y0, t1, saveat, *out)
+
+
+def native_adaptive_reverse(adjoint, max_steps, slots, y0, method):
+    """``(forward, backward)`` of :func:`native_or_stepped` for an adaptive solve by the native
+    reverse sweep (:func:`jaxbody.backends.native.adaptive_solve_vjp`; the saved states' cotangents
+    through each step's dense output), its checkpoints planned as :func:`native_reverse` plans
+    them; ``None`` without a bounded step budget (diffrax's loop differentiates)."""
+    if max_steps is None:
+        return None
+    checkpoints = adjoint.checkpoints
+    if checkpoints is None:
+        checkpoints = default_checkpoints(max_steps, y0[0].size + y0[1].size, y0[0].dtype.itemsize)
+    held = []
+
+    def forward(rest, y0):
+        scene, t0, t1, dt0, valid, _, controller, _, saveat = rest
+        main = _main_save(saveat)
+        model, kwargs = _adaptive_arguments(scene, y0, valid, slots, controller)
+        t1 = _forward_in_time(t0, t1, 1.0)
+        *out, saved = native.adaptive_solve(model, method, y0[0], y0[1], t0, t1, dt0=dt0, max_steps=max_steps,
+                                            ts=main.ts, checkpoints=checkpoints, **kwargs)
+        # residuals are arrays: the rest (the controller's norm, the solver) is held here
+        dynamic, static = eqx.partition(rest, eqx.is_array)
+        held.append(static)
+        return _adaptive_outputs(y0, t1, saveat, *out), (dynamic, y0, saved, out[3])
+
+    def backward(residuals, cotangents):
+        dynamic, y0, saved, status = residuals
+        scene, t0, t1, dt0, valid, _, controller, _, saveat = eqx.combine(dynamic, held[-1])
+        main = _main_save(saveat)
+        _, ys, _, yf, _, _ = cotangents
+        ys = [_instantiate(a) for a in ys]
+        ct = [_instantiate(b)[0] for b in yf]
+        ct_saved = None
+        if main.ts is None:
+            ct = [a[0] + b for a, b in zip(ys, ct)]  # the end state is the saved point
+        else:
+            if main.t1:  # the end state saved after the requested times
+                ct = [a[-1] + b for a, b in zip(ys, ct)]
+                ys = [a[:-1] for a in ys]
+            rows = list(ys[:2]) + [ys[2] if len(ys) == 3 else jnp.zeros((ys[0].shape[0], 1), ys[0].dtype)]
+            ct_saved = jnp.concatenate(rows, axis=1)
+        model, kwargs = _adaptive_arguments(scene, y0, valid, slots, controller)
+        work = ct[2][0] if len(y0) == 3 else 0.0
+        ct_q, ct_v, ct_w = native.adaptive_solve_vjp(model, method, y0[0], y0[1], t0, t1, dt0=dt0, max_steps=max_steps,
+                                                     checkpoints=checkpoints, saved=saved, status=status,
+                                                     cotangent_q=ct[0], cotangent_v=ct[1], cotangent_work=work,
+                                                     ts=main.ts, cotangent_saved=ct_saved, **kwargs)
+        return (ct_q, ct_v) + ((jnp.reshape(ct_w, (1,)).astype(y0[2].dtype),) if len(y0) == 3 else ())
+
+    return forward, backward
 
 
 def _instantiate(cotangent):
@@ -159,7 +295,7 @@ def native_reverse(adjoint, max_steps, slots, y0):
         t1 = _forward_in_time(t0, t1, dt0)
         *out, saved = native.rk4_rollout_checkpointed(model, y0[0], y0[1], t0, t1, dt0, max_steps, checkpoints, work0=w0,
                                                **kwargs)
-        return _native_outputs(y0, t1, slots, *out), (rest, y0, saved, out[4])
+        return _native_outputs(y0, t1, slots, *out), (rest[:5], y0, saved, out[4])
 
     def backward(residuals, cotangents):
         (scene, t0, t1, dt0, valid, *_), y0, saved, steps = residuals

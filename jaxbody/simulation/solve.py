@@ -32,7 +32,8 @@ from .checks import (
 )
 from .failures import mark_invalid, raise_on_failure
 from .field import VectorField
-from .native_solve import native_or_stepped, native_reverse, native_solve, native_solve_applies, native_solve_enabled
+from .native_solve import (native_adaptive_reverse, native_adaptive_solve, native_method, native_or_stepped,
+                           native_reverse, native_solve, native_solve_applies, native_solve_enabled)
 from .solution import RESULTS, Solution, balance_scale, energy_balance, ran_by, solution_layout
 from .partitioning import PartitionSolver, partition_report, partition_solver, with_best_partition
 from .solvers import Guarded, apply_failure, choose_solver, failure_record, for_adjoint, recording_depth
@@ -257,20 +258,28 @@ def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps,
     else:
         # one native call; derivatives by the native reverse sweep (initial state alone) or
         # through the step-by-step solve
+        # the save times travel in `rest` (arrays of a custom VJP's primal function are its
+        # arguments, not closed over)
         def stepped(rest, y0):
-            scene, t0, t1, dt0, valid, solver, controller, adjoint = rest
+            scene, t0, t1, dt0, valid, solver, controller, adjoint, saveat = rest
             return integrate(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps, adjoint, meter,
                              event, dense, slots)[0]
 
-        def native(rest, y0):
-            scene, t0, t1, dt0, valid = rest[:5]
-            return native_solve(scene, y0, t0, t1, dt0, valid, max_steps, slots)
+        method = native_method(solver, controller)
 
-        rest = (scene, t0, t1, dt0, valid, solver, controller, adjoint)
+        def native(rest, y0):
+            scene, t0, t1, dt0, valid, _, controller, _, saveat = rest
+            if method == "rk4":
+                return native_solve(scene, y0, t0, t1, dt0, valid, max_steps, slots)
+            return native_adaptive_solve(scene, y0, t0, t1, dt0, valid, max_steps, slots, method, controller, saveat)
+
+        rest = (scene, t0, t1, dt0, valid, solver, controller, adjoint, saveat)
         # the native reverse sweep keeps checkpoints as the checkpointed adjoint would; another
         # adjoint asked for its own way of differentiating, which the stepped solve honours
-        checkpointed = isinstance(adjoint, diffrax.RecursiveCheckpointAdjoint)
-        reverse = native_reverse(adjoint, max_steps, slots, y0) if checkpointed else None
+        reverse = None
+        if isinstance(adjoint, diffrax.RecursiveCheckpointAdjoint):
+            reverse = (native_reverse(adjoint, max_steps, slots, y0) if method == "rk4"
+                       else native_adaptive_reverse(adjoint, max_steps, slots, y0, method))
         ts, ys, tf, yf, stats, result = native_or_stepped(rest, y0, native, stepped, reverse)
     q, v = ys[0], ys[1]
     finite = jnp.all(jnp.isfinite(q), axis=-1) & jnp.all(jnp.isfinite(v), axis=-1)

@@ -51,6 +51,10 @@ How it plugs into JAX:
   ``"rk4_run_vjp"``) recomputes the steps between checkpoints that the forward call wrote and
   runs the reverse-mode program of each step, last first: the gradient with respect to the
   initial state. :func:`jaxbody.simulate` takes both where a solve keeps only its end state.
+  An adaptive solve by an embedded pair (Tsit5, Dopri5, Dopri8: :func:`adaptive_solve`, modes
+  ``"adaptive:<method>"``) is one program as well: the field generated once, the stages looped
+  over diffrax's tableau, diffrax's PID step-size control and dense output per lane; its reverse
+  sweep (:func:`adaptive_solve_vjp`) replays the accepted steps from checkpoints and reverses them.
 
 It needs a C++17 compiler (``g++``, or ``$CXX``) when a tree is first used; compiled
 kernels are cached in ``$JAXBODY_CACHE_DIR`` (default ``~/.cache/jaxbody``) under a hash of
@@ -61,9 +65,11 @@ The package, one job per module: :mod:`.symbolic` (the tracer), :mod:`.rk4` (the
 springs and dampers on scalars), :mod:`.differentiate` (forward and reverse mode of the
 operation list), :mod:`.codegen` (the C++ programs, from the templates shipped next to it),
 :mod:`.build` (compiler, cache, FFI target), :mod:`.primitives` (the JAX rules of forward
-dynamics), :mod:`.step`, :mod:`.solve` and :mod:`.energy` (one RK4 step, whole solves, energies).
+dynamics), :mod:`.step`, :mod:`.solve` and :mod:`.energy` (one RK4 step, whole solves, energies),
+:mod:`.tableaux` and :mod:`.adaptive` (the embedded pairs, whole adaptive solves).
 """
 
+from .adaptive import Control, adaptive_checkpoint_layout, adaptive_solve, adaptive_solve_vjp
 from .build import BUILDS, MAX_DOFS, SPIN_NS, WIDE_BATCH, applies, available, build_for, threads
 from .codegen import MODES
 from .energy import energies
@@ -74,6 +80,10 @@ from .symbolic import parameter_vector
 
 __all__ = [
     "BUILDS",
+    "Control",
+    "adaptive_checkpoint_layout",
+    "adaptive_solve",
+    "adaptive_solve_vjp",
     "MAX_DERIVATIVE_DOFS",
     "MAX_DOFS",
     "MODES",

@@ -23,7 +23,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ...model import Model
-from .codegen import COMMON_TEMPLATE, generate, generate_run, generate_run_vjp, HANDLER_TEMPLATE, result_widths, SCALAR_TYPES
+from .codegen import (COMMON_TEMPLATE, generate, generate_adaptive, generate_adaptive_vjp, generate_run, generate_run_vjp,
+                      HANDLER_TEMPLATE, result_widths, SCALAR_TYPES)
+from .tableaux import tableau
 
 #: Largest number of DoFs ``kernel="auto"`` gives the native kernel. The generated code grows
 #: with the mass-matrix entries on each DoF's ancestor chain and their factorisation (for a
@@ -184,11 +186,15 @@ class Kernel:
             self.source = generate_run(tree, joints, self.dtype)
         elif mode == "rk4_run_vjp":
             self.source = generate_run_vjp(tree, joints, self.dtype)
+        elif mode.startswith("adaptive:"):
+            self.source = generate_adaptive(tree, joints, self.dtype, tableau(mode.split(":")[1]))
+        elif mode.startswith("adaptive_vjp:"):
+            self.source = generate_adaptive_vjp(tree, joints, self.dtype, tableau(mode.split(":")[1]))
         else:
             self.source = generate(tree, joints, with_external, self.dtype, mode)
         self._addresses = {}  # built on the first call (traced), where a build error then shows
         self._batched = {}
-        if mode in ("fd", "rk4", "energy", "rk4_run", "rk4_run_vjp"):
+        if mode in ("fd", "rk4", "energy", "rk4_run", "rk4_run_vjp") or mode.startswith("adaptive_vjp:"):
             self.batched = self.batched_with(self.widths)
 
     def address(self, build: str) -> int:
@@ -196,7 +202,8 @@ class Kernel:
         with _lock:  # two threads tracing the same kernel build it once
             if build not in self._addresses:
                 source = self.source.replace("@VECTOR_BYTES@", BUILDS[build])
-                lib = ctypes.cdll.LoadLibrary(str(build_library(source, f"{self.mode}_{build}")))
+                stem = self.mode.replace(":", "_")
+                lib = ctypes.cdll.LoadLibrary(str(build_library(source, f"{stem}_{build}")))
                 _loaded.append(lib)
                 self._addresses[build] = ctypes.cast(lib.jaxbody_range, ctypes.c_void_p).value
             return self._addresses[build]

@@ -11,7 +11,7 @@ import numpy as np
 
 from .. import scalar
 from .symbolic import declared_scalars, Emitter, input_scalars, stop_derivative, Sym, sym_sqrt, SymbolicModel, with_derivative
-from .rk4 import joint_force, rk4_scalars, spring_potential
+from .rk4 import joint_force, qdot_scalars, rk4_scalars, spring_potential
 from .differentiate import active_values, adjoint_program, inverse_dynamics_block, tangent_program
 
 def _template(name: str) -> str:
@@ -33,12 +33,17 @@ _ENERGY_SLOTS = {"q": 0, "v": 1, "p": 2, "g": 3, "k": 4, "r": 5}
 
 #: Programs: forward dynamics and one RK4 step, each with its forward- and reverse-mode
 #: derivative, and the energies of a state (no derivative programs: their tangents are rare).
-MODES = ("fd", "jvp", "vjp", "rk4", "rk4_jvp", "rk4_vjp", "energy", "rk4_run", "rk4_run_vjp")
+MODES = ("fd", "jvp", "vjp", "rk4", "rk4_jvp", "rk4_vjp", "energy", "rk4_run", "rk4_run_vjp",
+         *(f"{kind}:{method}" for kind in ("adaptive", "adaptive_vjp") for method in ("tsit5", "dopri5", "dopri8")))
 
 
 def result_widths(joints, mode: str) -> tuple:
     """Row widths of a program's results."""
     nq, nv = joints.nq, joints.nv
+    if mode.startswith("adaptive_vjp:"):
+        return (nq, nv, 1)
+    if mode.startswith("adaptive:"):
+        return (nq, nv, 1, 6)  # then the saved states and the checkpoints, sized per call
     return {
         "fd": (nv,),
         "jvp": (nv,),
@@ -320,3 +325,91 @@ def _run_source(block: str, invariant: list, parts: dict, joints, dtype) -> str:
     text = text.replace("@NQ@", str(joints.nq)).replace("@NV@", str(joints.nv))
     prelude = _KERNEL.split("// the generated function of the states")[0]
     return prelude.replace("@COMMON@", COMMON_TEMPLATE.replace("@T@", SCALAR_TYPES[np.dtype(dtype)][0])) + text
+
+
+# ----------------------------------------------------------------------------- adaptive solves
+# A whole adaptive solve by an embedded Runge–Kutta pair (:mod:`.tableaux`) per block of states:
+# the stages loop over the tableau's coefficients and call the field, generated once; the
+# controller is diffrax's PIDController (the step of _ADAPTIVE_ATTEMPT, shared by the solve and
+# its reverse sweep's replay so that both take the same steps). Operands: q, v, f, p, g, ext,
+# k, r, d, the work w0, the schedule (jaxbody.backends.native.adaptive) and the save times;
+# results: q, v, w, the status (t reached, steps, accepted, rejected, result code, saves), the
+# saved states and, when asked for, the checkpoints of the reverse sweep.
+_ADAPTIVE_ATTEMPT = _template("adaptive_attempt.cc")
+_ADAPTIVE_BLOCK = _template("adaptive_block.cc")
+# Its reverse sweep: operands those of the solve (the save times' slot unused), then the
+# checkpoints, the solve's status and the cotangents of the final q, v and w; results: the
+# cotangents of the initial q, v and w.
+_ADAPTIVE_VJP_BLOCK = _template("adaptive_vjp_block.cc")
+
+
+def _field_program(tree, joints, derivative=None) -> tuple:
+    """The field ``(q̇, a, P)`` at a state read from ``sq``, ``sv`` on symbolic scalars (springs,
+    dampers, gravity and the force held): ``(emitter, operand loads, field lines, (q, v), outputs)``."""
+    em = Emitter()
+    model, f, g, stiffness, reference, damping = _run_operands(em, tree, joints)
+    invariant = len(em.lines)
+    q = _carried(em, "q", joints.nq, "sq")
+    v = _carried(em, "v", joints.nv, "sv")
+    total, power = joint_force(joints, q, v, f, stiffness, reference, damping)
+    a = _acceleration(em, model, joints, q, v, total, g, None, derivative)
+    outputs = list(qdot_scalars(joints, q, v)) + list(a) + [power]
+    return em, em.lines[:invariant], em.lines[invariant:], (q, v), outputs
+
+
+def _c_array(values) -> str:
+    """A C++ brace initialiser of (nested) numbers."""
+    if isinstance(values, (list, tuple)):
+        return "{" + ", ".join(_c_array(x) for x in values) + "}"
+    return f"T({float(values)!r})"
+
+
+def _projection(joints) -> tuple[list, list]:
+    """C++ lines renormalising the quaternions of ``x`` in place (as :func:`_run_step`:
+    ``q / sqrt(|q|²)``), and of the reverse of that on the cotangent ``lam`` at ``x``."""
+    forward, reverse = [], []
+    for block in _quaternion_coordinates(joints):
+        sq = " + ".join(f"x[{i}] * x[{i}]" for i in block)
+        forward.append("{ const U inverse = T(1) / vsqrt(" + sq + "); "
+                       + " ".join(f"x[{i}] = x[{i}] * inverse;" for i in block) + " }")
+        # n = x/|x|: λₓ = (λₙ − n (n·λₙ)) / |x|
+        reverse.append("{ const U inverse = T(1) / vsqrt(" + sq + "); "
+                       + " ".join(f"const U n{c} = x[{i}] * inverse;" for c, i in enumerate(block))
+                       + " const U dot = " + " + ".join(f"n{c} * lam[{i}]" for c, i in enumerate(block)) + "; "
+                       + " ".join(f"lam[{i}] = (lam[{i}] - n{c} * dot) * inverse;" for c, i in enumerate(block)) + " }")
+    return forward, reverse
+
+
+def _adaptive_source(template: str, invariant: list, parts: dict, joints, dtype, tab) -> str:
+    text = template.replace("@ATTEMPT@", _ADAPTIVE_ATTEMPT)
+    dense = np.array(tab.dense)
+    S = tab.stages
+    A = [list(row) + [0.0] * (S - len(row)) for row in tab.a]
+    forward, reverse = _projection(joints)
+    parts = {**parts, "PROJECT": forward, "PROJECT_VJP": reverse}
+    text = (text.replace("@S@", str(S)).replace("@D@", str(dense.shape[1])).replace("@A@", _c_array(A))
+            .replace("@E@", _c_array(tab.e)).replace("@P@", _c_array(dense.tolist())))
+    return _run_source(text, invariant, parts, joints, dtype)
+
+
+def generate_adaptive(tree, joints, dtype, tab) -> str:
+    """C++ source of a whole adaptive solve by the pair ``tab`` (:data:`_ADAPTIVE_BLOCK`)."""
+    em, invariant, lines, _, outputs = _field_program(tree, joints)
+    field = lines + [f"f[{i}] = {_symbol_value(x)};" for i, x in enumerate(outputs)]
+    return _adaptive_source(_ADAPTIVE_BLOCK, invariant, {"FIELD": field}, joints, dtype, tab)
+
+
+def generate_adaptive_vjp(tree, joints, dtype, tab) -> str:
+    """C++ source of the reverse sweep of :func:`generate_adaptive` (:data:`_ADAPTIVE_VJP_BLOCK`):
+    the field and the reverse-mode program of the field (cotangents ``lf`` of ``(q̇, a, P)`` to
+    those of ``(q, v)`` in ``r``)."""
+    em, invariant, lines, _, outputs = _field_program(tree, joints)
+    field = lines + [f"f[{i}] = {_symbol_value(x)};" for i, x in enumerate(outputs)]
+    rev, _, rev_lines, (q, v), rev_outputs = _field_program(tree, joints, derivative="vjp")
+    primal = list(rev.ops)
+    cts = _carried(rev, "lf", len(rev_outputs), "lf")
+    pairs = [(o, c) for o, c in zip(rev_outputs, cts) if isinstance(o, Sym)]
+    adj = adjoint_program(primal, active_values(primal, {"q", "v"}), pairs)
+    body = _hoisted(rev.lines[len(invariant):])
+    body += [f"r[{i}] = {_symbol_value(adj.get(x.name, 0.0))};" for i, x in enumerate(list(q) + list(v))]
+    return _adaptive_source(_ADAPTIVE_VJP_BLOCK, invariant, {"FIELD": field, "FIELD_VJP": body}, joints, dtype, tab)

@@ -9,7 +9,7 @@ rules evaluate the same arithmetic. The step is the classical tableau of
 from ..scalar import RK4_A, RK4_B
 from .symbolic import sym_atan2, sym_sqrt, where_negative
 
-def _qdot_scalars(joints, q: list, v: list) -> list:
+def qdot_scalars(joints, q: list, v: list) -> list:
     """``q̇`` for joint rates ``v`` on lists of scalars (quaternions: ``q̇ = ½ q ⊗ (0, ω)``), as
     :func:`jaxbody.kinematics.qpos_rate`; works on symbols and on JAX scalars alike."""
     qd = [0.0] * joints.nq
@@ -111,7 +111,7 @@ def rk4_scalars(field, joints, q: list, v: list, h) -> tuple:
 
     def increment(q, v):
         a, power = field(q, v)
-        return [h * x for x in _qdot_scalars(joints, q, v)], [h * x for x in a], h * power
+        return [h * x for x in qdot_scalars(joints, q, v)], [h * x for x in a], h * power
 
     def ahead(k, c):
         return [y + c * d for y, d in zip(q, k[0])], [y + c * d for y, d in zip(v, k[1])]
