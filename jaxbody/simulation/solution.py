@@ -120,6 +120,8 @@ class Solution(eqx.Module):
             :class:`jaxbody.Phases` run, those of all phases in time order in the same slots
             (``stats["num_repartitions"]`` their total; the choice made at a switch is not
             counted).
+        solver, solver_reason: the solver preset that ran (a diffrax solver's class name when one
+            was given) and why (what ``solver="auto"`` read from the scene, or ``"asked for"``).
         energy0: total energy ``E(t0)`` of the initial state (after ``project_initial``), the
             reference of ``energy_balance``, ``energy_error`` and ``energy_drift``; ``None``
             without energy.
@@ -145,6 +147,9 @@ class Solution(eqx.Module):
     interpolation: Any = None
     repartition_times: Any = None
     energy0: Float[Array, ""] | None = None
+    # static: the solver preset that ran and why ``solver="auto"`` chose it (or "asked for")
+    solver: str = eqx.field(static=True, default="")
+    solver_reason: str = eqx.field(static=True, default="")
 
     def evaluate(self, t: ArrayLike) -> tuple[Float[Array, " nq"], Float[Array, " nv"]]:
         """``(q, v)`` at any time ``t`` in ``[t0, t_final]`` from the solver's dense output
