@@ -117,13 +117,14 @@ def pendulum_closed_form(t, y):
 
 
 def chain_mjcf(stiffness=(1.0, 10.0, 1e3, 1e5, 1e6), damping=0.01):
-    """Five 0.2 m links of 0.5 kg in a vertical plane, joint springs spanning six decades."""
+    """Five 0.5 m links of 1 kg (slender rods) hanging in a vertical plane, joint springs spanning six
+    decades; the stiffest mode is near 1e4 rad/s."""
     body = ""
     for i, k in reversed(list(enumerate(stiffness))):
-        pos = "0 0 0" if i == 0 else "0 0 -0.2"
+        pos = "0 0 0" if i == 0 else "0 0 -0.5"
         body = (f'<body name="link{i + 1}" pos="{pos}"><joint name="j{i + 1}" type="hinge" axis="0 1 0" '
-                f'stiffness="{k:g}" damping="{damping:g}"/><inertial pos="0 0 -0.1" mass="0.5" '
-                f'diaginertia="0.0017 0.0017 0.0001"/>{body}</body>')
+                f'stiffness="{k:g}" damping="{damping:g}"/><inertial pos="0 0 -0.25" mass="1" '
+                f'diaginertia="0.0208 0.0208 0.001"/>{body}</body>')
     return f"""<mujoco model="stiff_chain">
   <option gravity="0 0 -9.81" timestep="0.001"><flag contact="disable" limit="disable" actuation="disable"/></option>
   <worldbody>{body}</worldbody>
@@ -144,7 +145,8 @@ def fourbar_angles(crank=0.6):
 
 def fourbar_mjcf():
     """The four-bar with its body frames turned so that ``qpos = 0`` is closed (MuJoCo places the
-    connect's second anchor at ``qpos = 0``); the loop closure is an equality ``connect``."""
+    connect's second anchor at ``qpos = 0``); the loop closure is an equality ``connect``, made as
+    stiff as MuJoCo allows (its time constant is raised to two timesteps where that is more)."""
     th = fourbar_angles()
     q = [th[0], th[1] - th[0], th[2]]
     (L1, L2, L3), (m1, m2, m3) = FB_L, FB_M
@@ -163,7 +165,8 @@ def fourbar_mjcf():
       <joint name="j3" type="hinge" axis="0 -1 0"/>{inert(m3, L3)}
     </body>
   </worldbody>
-  <equality><connect name="loop" body1="coupler" body2="rocker" anchor="{L2} 0 0"/></equality>
+  <equality><connect name="loop" body1="coupler" body2="rocker" anchor="{L2} 0 0" solref="0.0002 1"
+    solimp="0.99999 0.99999 0.001"/></equality>
 </mujoco>"""
 
 
@@ -239,7 +242,21 @@ def mj_model(spec):
 
 def reference(spec, name, ts):
     """``(states (N_SAVE, nq + nv), seconds, convergence)``: the reference at the saved times and
-    (for the dopri8 references) its distance to the same run at 1e-12."""
+    (for the dopri8 references) its distance to the same run at 1e-12. ``$WP_REFERENCE_CACHE``
+    (a folder): keep references there between runs while developing."""
+    cache = os.environ.get("WP_REFERENCE_CACHE")
+    path = pathlib.Path(cache, f"{name}_{spec['t1']:g}.json") if cache else None
+    if path is not None and path.exists():
+        d = json.loads(path.read_text())
+        return np.asarray(d["states"]), d["seconds"], d["convergence"]
+    out = _reference(spec, name, ts)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(dict(states=out[0].tolist(), seconds=out[1], convergence=out[2])))
+    return out
+
+
+def _reference(spec, name, ts):
     t0 = time.perf_counter()
     T = spec["t1"]
     convergence = None
@@ -329,7 +346,7 @@ def mj_run(spec, integrator, dt, ts, ref, scene, min_time):
     spec_bits = mujoco.mjtState.mjSTATE_FULLPHYSICS
     init = np.zeros(mujoco.mj_stateSize(m, spec_bits))
     mujoco.mj_getState(m, d, init, spec_bits)
-    nstep = int(round(spec["t1"] / dt))
+    nstep = int(round(spec["t1"] / dt))  # dt from grid_dt: the span is a whole number of steps
     tau = spec.get("tau")
     control, cspec = None, mujoco.mjtState.mjSTATE_CTRL
     if tau is not None:
@@ -381,17 +398,31 @@ def sweeps(name, quick):
            "tsit5": tols, "dopri5": tols, "dopri8": tols, "auto": [1e-4, 1e-6, 1e-8, 1e-10, 1e-12],
            "mj_euler": low, "mj_implicitfast": low, "mj_rk4": dts + [3e-5]}
     if name == "chain":
-        # the stiffest mode (≈ 2e4 rad/s) bounds explicit steps: start where they are stable
-        out.update(euler=[1e-5, 3e-6, 1e-6], semi_implicit_euler=[3e-5, 1e-5, 3e-6], heun=[3e-5, 1e-5, 3e-6],
-                   rk4=[1e-4, 3e-5, 1e-5, 3e-6], mj_euler=[3e-5, 1e-5, 3e-6], mj_implicitfast=[1e-4, 3e-5, 1e-5, 3e-6],
-                   mj_rk4=[1e-4, 3e-5, 1e-5, 3e-6], kvaerno5=[1e-4, 1e-6, 1e-8])
+        # the stiffest mode bounds explicit steps: start where they are stable (explicit Euler is
+        # unstable on an undamped mode at any step)
+        out.update(euler=[1e-4, 3e-5], semi_implicit_euler=[1e-4, 3e-5], heun=[1e-4, 3e-5],
+                   rk4=[3e-4, 1e-4, 3e-5], mj_euler=[1e-4, 3e-5], mj_implicitfast=[1e-4, 3e-5],
+                   mj_rk4=[3e-4, 1e-4, 3e-5], kvaerno5=[1e-4, 1e-6, 1e-8],
+                   tsit5=tols[:3], dopri5=tols[:3], dopri8=tols[:4], auto=[1e-4, 1e-6, 1e-8])
     if name in ("disk", "fourbar"):
-        # constrained scenes: fewer fixed-step points (each is a costlier field)
-        out.update(euler=low[:3], semi_implicit_euler=low[:3], heun=dts[1:4], rk4=dts[:4])
+        # constrained scenes compile for about a minute per method on two cores: RK4, Tsit5 and
+        # Dopri8 only (auto picks among those)
+        for k in ("euler", "semi_implicit_euler", "heun", "dopri5"):
+            out.pop(k)
+        out.update(rk4=dts[:4], tsit5=tols[:4], dopri8=tols[1:])
     return out
 
 
 FLOAT32 = {"rk4": None, "tsit5": [1e-3, 1e-4, 1e-5, 1e-6, 1e-7], "auto": [1e-2, 1e-3, 1e-4]}
+#: float32 on the scenes whose float64 solves are long or whose constrained field takes minutes to compile
+FLOAT32_SHORT = {"rk4": None, "tsit5": [1e-3, 1e-4, 1e-5], "auto": [1e-2, 1e-3]}
+
+
+def grid_dt(T, dt):
+    """The step nearest ``dt`` that puts every one of the ``N_SAVE`` saved times on the step grid
+    (no interpolation between steps, for jaxbody and MuJoCo alike)."""
+    per_interval = max(1, round(T / (N_SAVE - 1) / dt))
+    return T / ((N_SAVE - 1) * per_interval)
 
 
 def run_scene(name, spec, quick, dtypes, min_time, log, methods=None):
@@ -401,13 +432,15 @@ def run_scene(name, spec, quick, dtypes, min_time, log, methods=None):
     log(f"{name}: reference ({spec['reference']}) in {ref_s:.1f} s" + (f", converged to {convergence:.1e}" if convergence is not None else ""))
     rec = dict(title=spec["title"], kind=spec["kind"], t1=T, reference=spec["reference"], reference_s=ref_s,
                reference_convergence=convergence, runs=[])
-    plan = sweeps(name, quick)
+    plan = {k: [grid_dt(T, x) for x in v] if k in FIXED or k.startswith("mj_") else v
+            for k, v in sweeps(name, quick).items()}
     if methods is not None:
         plan = {k: v for k, v in plan.items() if k in methods}
     for dtype in dtypes:
         scene, q0, v0 = jb_scene(spec, name, dtype)
         ts = jnp.asarray(ts64, dtype)
-        todo = plan if dtype == np.float64 else {k: (v if v is not None else plan["rk4"]) for k, v in FLOAT32.items()
+        f32 = FLOAT32_SHORT if name in ("chain", "disk", "fourbar") else FLOAT32
+        todo = plan if dtype == np.float64 else {k: (v if v is not None else plan["rk4"]) for k, v in f32.items()
                                                  if methods is None or k in methods}
         # auto last: it reuses the compiled solve of the preset it picks
         todo = {k: todo[k] for k in sorted(todo, key=lambda k: k == "auto")}
@@ -426,7 +459,8 @@ def run_scene(name, spec, quick, dtypes, min_time, log, methods=None):
                     knob_run = knob
                 if solver not in compiled:
                     fixed = solver in FIXED
-                    steps = int(math.ceil(T / min(knobs))) + 10 if fixed else 1_000_000
+                    # Kvaerno5: each step is Newton iterations with a Jacobian; a tenth of the budget
+                    steps = int(math.ceil(T / min(knobs))) + 10 if fixed else (100_000 if solver == "kvaerno5" else 1_000_000)
                     compiled[solver] = jb_solve_fn(scene, spec, solver, dtype, ts, steps)
                 call = lambda f=compiled[solver], k=jnp.asarray(knob_run, dtype): f(q0, v0, k)  # noqa: E731
                 try:
@@ -639,7 +673,7 @@ def run(scenes=None, quick=False, dtypes=None, min_time=None, log=print, methods
     if unknown:
         raise ValueError(f"unknown scenes {unknown}; choose from {list(specs)}")
     dtypes = ([np.float64] if quick else [np.float64, np.float32]) if dtypes is None else dtypes
-    min_time = (0.02 if quick else 0.2) if min_time is None else min_time
+    min_time = (0.02 if quick else 0.1) if min_time is None else min_time
     mujoco.set_mjcb_time(None)  # a Python timer callback would time every stage through Python
     record = {"stamp": stamp(), "quick": quick, "scenes": {}}
     start = time.perf_counter()
