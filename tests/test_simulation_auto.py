@@ -10,6 +10,7 @@ import math
 import warnings
 
 import diffrax
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -106,6 +107,15 @@ def test_stiff_well_damped_picks_the_implicit_solver():
     choice = auto.choose_auto(scene, jnp.zeros(2), 0.0, 5.0, jnp.float64, None, None, None)
     assert choice.solver == "kvaerno5"
     assert "stiff" in choice.reason and "damping ratio" in choice.reason
+    # under jit/vmap the initial state is traced: the estimate is made at the model's qpos0
+    seen = {}
+
+    def traced(q):
+        seen["choice"] = auto.choose_auto(scene, q, 0.0, 5.0, jnp.float64, None, None, None)
+        return q
+
+    jax.jit(traced)(jnp.zeros(2))
+    assert seen["choice"] == choice
 
 
 def test_float32_defaults_floor_and_warning(pendulum):

@@ -116,14 +116,27 @@ def stiffness_estimate(scene, q) -> dict | None:
     for dampers without springs the fastest decay rate ``max eig(C, M)``. Returns ``{"omega":
     largest ω (rad/s), "zeta": its damping ratio, "decay": fastest decay rate of the dampers
     alone (1/s), "omega_min": smallest nonzero ω}`` or ``None`` when the scene has neither
-    springs nor dampers (or its values are traced).
+    springs nor dampers (or its values are traced). A traced ``q`` (under ``jit``/``vmap``) is
+    replaced by the model's reference configuration ``qpos0``.
     """
     springs = [e for e in scene.effects if isinstance(e, JointSprings)]
     dampers = [e for e in scene.effects if isinstance(e, JointDampers)]
     if not springs and not dampers:
         return None
-    if not is_concrete(q, *springs, *dampers) or not is_concrete(scene):
+    if not is_concrete(*springs, *dampers) or not is_concrete(scene):
         return None
+    if not is_concrete(q):
+        # a traced initial state (under jit or vmap): the model's reference configuration instead,
+        # the springs' stiffness and the mass matrix change little with the configuration
+        q = getattr(scene.model, "qpos0", None)
+        if q is None or not is_concrete(q):
+            return None
+    # concrete values: computed now even inside a jit/vmap trace (which would stage them out)
+    with jax.ensure_compile_time_eval():
+        return _estimate(scene, q, springs, dampers)
+
+
+def _estimate(scene, q, springs, dampers):
     nv = scene.nv
     K = np.zeros((nv, nv))
     for e in springs:
@@ -185,6 +198,7 @@ def choose_auto(scene, q0, t0, t1, dtype, rtol, atol, target_error) -> AutoChoic
         atol = default if atol is None else atol
     tightest = min(float(np.min(np.asarray(rtol))), float(np.min(np.asarray(atol)))) if is_concrete(rtol, atol) else None
     span = float(np.asarray(t1) - np.asarray(t0)) if is_concrete(t0, t1) else None
+    # the span is the end of the study's rule (modes over the run): traced times give no estimate
     est = stiffness_estimate(scene, q0) if span is not None else None
     if est is not None:
         fast_span = max(est["omega"], est["decay"]) * span
