@@ -144,3 +144,27 @@ def test_simulate_records_the_choice_and_its_reason(pendulum):
                       saveat=diffrax.SaveAt(t1=True))
     np.testing.assert_array_equal(np.asarray(sol.q_final), np.asarray(ref.q_final))
     assert ref.solver == "tsit5" and ref.solver_reason == "asked for"
+
+
+@pytest.mark.slow  # about 20 s: the notebook runs the same quick study in the default suite
+def test_work_precision_quick_study_is_consistent(tmp_path, monkeypatch):
+    import sys
+
+    monkeypatch.syspath_prepend(str(__import__("pathlib").Path(__file__).resolve().parents[1] / "benchmarks"))
+    import work_precision as wp
+
+    rec = wp.run(["pendulum"], quick=True, methods=("tsit5", "auto", "mj_rk4"), log=lambda line: None)
+    runs = rec["scenes"]["pendulum"]["runs"]
+    tsit5 = sorted((r for r in runs if r["method"] == "tsit5"), key=lambda r: -r["knob"])
+    mj = sorted((r for r in runs if r["method"] == "mj_rk4"), key=lambda r: -r["knob"])
+    assert all(r["success"] for r in runs)
+    # tighter tolerances and smaller steps reach smaller errors against the closed-form reference
+    assert tsit5[1]["final_error"] < tsit5[0]["final_error"] / 100
+    assert mj[1]["final_error"] < mj[0]["final_error"] / 1000  # fourth order: 10x smaller step
+    for r in (r for r in runs if r["method"] == "auto"):
+        assert r["solver_ran"] == "tsit5" and r["tolerance"] == pytest.approx(r["knob"] / auto.ERROR_PER_TOLERANCE["tsit5"])
+    md = wp.markdown(rec)
+    assert "| pendulum | 0.0001 |" in md
+    wp.plot(rec, tmp_path / "wp.png")
+    assert (tmp_path / "wp.png").stat().st_size > 0
+    del sys.modules["work_precision"]
