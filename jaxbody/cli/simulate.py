@@ -266,6 +266,7 @@ def run(args) -> int:
     print(f"  integrated      t = 0 .. {t[-1] if len(t) else 0:g} s of {args.t1:g} s with {args.solver}, "
           f"rtol={args.rtol:g}, atol={args.atol:g}" + (f", dt={args.dt:g}" if args.dt else "")
           + f", in {len(chunks)} chunks")
+    print(f"  solver          {sol.solver} ({sol.solver_reason})")
     print(f"  steps           accepted {stats['num_accepted_steps']}, rejected {stats['num_rejected_steps']}")
     if len(t) and np.all(np.isfinite(energy)):
         e0 = energy[0]

@@ -20,6 +20,7 @@ from ..model import Model
 from ..scene import Event, Phases, Scene, SystemScene, own_constraints, scene as build_scene
 from .phases import simulate_phases
 from .solution import Solution
+from .auto import choose_auto, default_tolerance, warn_below_resolution
 from .solve import simulate_scene
 
 __all__ = ["DynamicalSystem", "simulate", "as_scene"]
@@ -95,9 +96,10 @@ def simulate(
     *,
     t0: ArrayLike = 0.0,
     tau: ArrayLike | Callable | None = None,
-    solver: str | diffrax.AbstractSolver = "tsit5",
-    rtol: ArrayLike = 1e-8,
-    atol: ArrayLike = 1e-8,
+    solver: str | diffrax.AbstractSolver = "auto",
+    rtol: ArrayLike | None = None,
+    atol: ArrayLike | None = None,
+    target_error: float | None = None,
     dt0: ArrayLike | None = None,
     controller: diffrax.AbstractStepSizeController | None = None,
     saveat: diffrax.SaveAt | ArrayLike | None = None,
@@ -123,11 +125,17 @@ def simulate(
         t0: initial time.
         tau: extra generalized forces, added as an actuation effect: a constant ``(nv,)`` array
             or a callable ``tau(t, q, v) -> (nv,)``.
-        solver: a preset — fixed step: ``"euler"``, ``"semi_implicit_euler"``, ``"heun"``,
+        solver: ``"auto"`` (the default: chosen from the scene's stiffness, constraints and
+            dtype and the accuracy asked, see :mod:`jaxbody.simulation.auto`; the choice and its
+            reason are in ``Solution.solver`` and ``Solution.solver_reason``), a preset — fixed step: ``"euler"``, ``"semi_implicit_euler"``, ``"heun"``,
             ``"rk4"`` (need ``dt0``); adaptive (PID control with ``rtol``/``atol``): ``"tsit5"``,
             ``"dopri5"``, ``"dopri8"``, ``"kvaerno5"`` (implicit, for stiff springs and dampers) —
             or any diffrax solver object.
-        rtol, atol: tolerances of adaptive solvers.
+        rtol, atol: tolerances of adaptive solvers (``None``: 1e-8 in float64, 1e-5 in float32;
+            a warning when asked below ten times the dtype's resolution).
+        target_error: instead of ``rtol``/``atol`` with ``solver="auto"``: the error of the final
+            state to aim at; the tolerances follow from the error per tolerance the accuracy study
+            measured (``docs/accuracy.md``).
         dt0: step of fixed-step solvers; first trial step of adaptive ones (``None``: automatic).
         controller: a diffrax step-size controller replacing the default PID / constant step.
         saveat: times ``(n_save,)`` or a ``diffrax.SaveAt`` (``ts``, ``t0``, ``t1``, ``steps``;
@@ -168,6 +176,35 @@ def simulate(
             the time reached, the reason, and ``q``/``v`` there (with the batch member under
             ``vmap``).
     """
+    dtype = _state_dtype(q0)
+    choice = None
+    if isinstance(solver, str) and solver == "auto":
+        first = system.scenes[0] if isinstance(system, Phases) else as_scene(system, tau)
+        choice = choose_auto(first, q0, t0, t1, dtype, rtol, atol, target_error)
+        solver, rtol, atol = choice.solver, choice.rtol, choice.atol
+    elif target_error is not None:
+        raise ValueError(f"simulate: target_error needs solver='auto' (got solver={solver!r}); give rtol/atol instead")
+    rtol = default_tolerance(dtype) if rtol is None else rtol
+    atol = default_tolerance(dtype) if atol is None else atol
+    warn_below_resolution(dtype, rtol, atol)
+    sol = _dispatch(system, q0, v0, t1, t0, tau, solver, rtol, atol, dt0, controller, saveat, n_save, max_steps, adjoint,
+                    event, dense, throw, progress, track_work, project_initial)
+    name = solver if isinstance(solver, str) else type(solver).__name__
+    reason = choice.reason if choice is not None else "asked for"
+    return dataclasses.replace(sol, solver=name, solver_reason=reason)
+
+
+def _state_dtype(q0):
+    """The dtype a solve from ``q0`` runs in (as ``simulate_scene`` casts it)."""
+    dtype = getattr(q0, "dtype", None)
+    if dtype is None:
+        dtype = jnp.asarray(q0).dtype
+    return dtype if jnp.issubdtype(dtype, jnp.inexact) else jnp.result_type(float)
+
+
+def _dispatch(system, q0, v0, t1, t0, tau, solver, rtol, atol, dt0, controller, saveat, n_save, max_steps, adjoint,
+              event, dense, throw, progress, track_work, project_initial):
+    """A phased run or one scene's solve, with the solver and tolerances decided."""
     if isinstance(system, Phases):
         # each phase declares its own forces and ends on its own event: a run-wide tau, event or
         # dense output would be ambiguous across the switches

@@ -134,6 +134,8 @@ class Solution(eqx.Module):
             :class:`jaxbody.Phases` run, those of all phases in time order in the same slots
             (``stats["num_repartitions"]`` their total; the choice made at a switch is not
             counted).
+        solver, solver_reason: the solver preset that ran (a diffrax solver's class name when one
+            was given) and why (what ``solver="auto"`` read from the scene, or ``"asked for"``).
         energy0: total energy ``E(t0)`` of the initial state (after ``project_initial``), the
             reference of ``energy_balance``, ``energy_error`` and ``energy_drift``; ``None``
             without energy.
@@ -159,6 +161,7 @@ class Solution(eqx.Module):
     interpolation: Any = None
     repartition_times: Any = None
     energy0: Float[Array, ""] | None = None
+    # static: the kernel that ran, the solver preset that ran and why ``solver="auto"`` chose it (or "asked for")
     kernel: str = eqx.field(static=True, default="")
     solver: str = eqx.field(static=True, default="")
     solver_reason: str = eqx.field(static=True, default="")
