@@ -64,7 +64,8 @@ operation list), :mod:`.codegen` (the C++ programs, from the templates shipped n
 dynamics), :mod:`.step`, :mod:`.solve` and :mod:`.energy` (one RK4 step, whole solves, energies).
 """
 
-from .build import BUILDS, MAX_DOFS, SPIN_NS, WIDE_BATCH, applies, available, build_for, threads
+from .build import (BUILDS, MAX_MASS_ENTRIES, SPIN_NS, WIDE_BATCH, applies, available, build_for, mass_matrix_entries, threads,
+                    too_large_reason, unavailable_reason)
 from .codegen import MODES
 from .energy import energies
 from .primitives import MAX_DERIVATIVE_DOFS, forward_dynamics
@@ -75,7 +76,7 @@ from .symbolic import parameter_vector
 __all__ = [
     "BUILDS",
     "MAX_DERIVATIVE_DOFS",
-    "MAX_DOFS",
+    "MAX_MASS_ENTRIES",
     "MODES",
     "SPIN_NS",
     "WIDE_BATCH",
@@ -85,10 +86,13 @@ __all__ = [
     "checkpoint_layout",
     "energies",
     "forward_dynamics",
+    "mass_matrix_entries",
     "parameter_vector",
     "rk4_rollout",
     "rk4_rollout_checkpointed",
     "rk4_rollout_vjp",
     "rk4_step",
     "threads",
+    "too_large_reason",
+    "unavailable_reason",
 ]
