@@ -1,6 +1,7 @@
 """What a new user waits for: the first model import, simulation and gradient, cold and warm.
 
     python benchmarks/first_call.py [--name NAME] [--cases C] [--repeats N] [--baseline DIR] [--cassie PATH]
+    python benchmarks/first_call.py --merge A.json B.json ... [--name NAME]   # one record from several runs
 
 Each case runs in fresh processes, as a user's script would, with jaxbody's defaults (no
 kernel or solver named): ``import jaxbody``; the model (``jb.from_mjcf`` or the builder);
@@ -11,7 +12,9 @@ the directory empty; **warm**, a second process after it. Each worker also recor
 compiled (JAX's monitoring events: programs traced and compiled, seconds of XLA compilation,
 persistent-cache hits; seconds spent building native libraries), which is the profile to read
 where a target is missed. ``--baseline DIR`` times another checkout (e.g. ``git archive`` of an
-older commit) in the same run, alternating with this tree. Writes ``NAME.json`` and
+older commit) in the same run, alternating with this tree (``--trees baseline`` times it alone,
+``--baseline-phases cold`` only its empty-cache phase). Runs split over several processes
+(each its own ``--name``) are joined by ``--merge``. Writes ``NAME.json`` and
 ``NAME.md`` (default ``first_call``) to ``--out`` (default ``benchmarks/results``).
 
 Targets (docs/performance.md, "First results"): with an empty cache, import ≤ 1 s, first
@@ -173,6 +176,8 @@ def _run(case, cassie, tree_path, cache_dir, phase) -> dict:
 
 def _compiles(profile: dict) -> str:
     """``programs compiled / XLA seconds / cache hits`` from a worker's profile."""
+    if not profile:
+        return "not recorded"
     n, secs = profile.get("/jax/core/compile/backend_compile_duration", [0, 0.0])
     hits = profile.get("/jax/compilation_cache/cache_hits", [0, 0.0])[0]
     return f"{n} / {secs:.1f} s / {hits}"
@@ -186,10 +191,19 @@ def main(argv=None):
     p.add_argument("--cases", default="panda,iiwa,disk,four-bar", help=f"comma-separated of {CASES}")
     p.add_argument("--cassie", help="MJCF of a Cassie-like model (floating base, ball joints, <connect> loops)")
     p.add_argument("--baseline", type=pathlib.Path, help="another checkout whose jaxbody is timed alongside")
+    p.add_argument("--trees", choices=("both", "this", "baseline"), default="both", help="which checkouts to time")
+    p.add_argument("--baseline-phases", default="cold,warm", help="phases of the baseline checkout")
+    p.add_argument("--merge", nargs="+", type=pathlib.Path, help="records (JSON) of earlier runs to join into one")
     p.add_argument("--worker", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.worker:
         print(json.dumps(_worker(args.worker, args.cassie)))
+        return
+    if args.merge:
+        records = [json.loads(f.read_text()) for f in args.merge]
+        record = dict(records[0], runs=[r for rec in records for r in rec["runs"]])
+        record["stamp"]["merged_from"] = [rec["stamp"] for rec in records]
+        _write(record, args)
         return
     cases = [c.strip() for c in args.cases.split(",") if c.strip()]
     for case in cases:
@@ -198,18 +212,29 @@ def main(argv=None):
         if case == "cassie" and not args.cassie:
             raise SystemExit("case 'cassie' needs --cassie PATH (its MJCF)")
     trees, baseline = checkouts(args.baseline)
+    if args.trees != "both":
+        trees = {k: v for k, v in trees.items() if (v is None) == (args.trees == "this")}
     record = {"stamp": stamp(), "targets": TARGETS, "runs": []}
     if baseline:
         record["baseline"] = baseline
+    args.out.mkdir(parents=True, exist_ok=True)
     for _ in range(args.repeats):
         for case in cases:
             for tree, path in trees.items():
+                phases = ("cold", "warm") if path is None else tuple(args.baseline_phases.split(","))
                 with tempfile.TemporaryDirectory(prefix="jaxbody-first-call-") as cache:
-                    for phase in ("cold", "warm"):
+                    for phase in phases:
                         rec = dict(_run(case, args.cassie, path, cache, phase), tree=tree)
                         record["runs"].append(rec)
                         print({k: v for k, v in rec.items() if not k.startswith("profile") and k not in ("q_final", "grad")}, flush=True)
+                        # kept as it goes: a long run stopped early leaves what it measured
+                        (args.out / f"{args.name}.json").write_text(json.dumps(record, indent=1))
     record["stamp"]["load_average_end"] = load_average()
+    _write(record, args)
+
+
+def _write(record, args):
+    """The record's JSON and Markdown table."""
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / f"{args.name}.json").write_text(json.dumps(record, indent=1))
     rows = []
