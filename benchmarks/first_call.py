@@ -17,7 +17,7 @@ older commit) in the same run, alternating with this tree (``--trees baseline`` 
 (each its own ``--name``) are joined by ``--merge``. Writes ``NAME.json`` and
 ``NAME.md`` (default ``first_call``) to ``--out`` (default ``benchmarks/results``).
 
-Targets (docs/performance.md, "First results"): with an empty cache, import ≤ 1 s, first
+Targets (docs/performance.md, "First calls and compile time"): with an empty cache, import ≤ 1 s, first
 simulation ≤ 3 s, first gradient ≤ 10 s; with a warm cache ≤ 1 s each.
 
 Cases: ``panda`` and ``iiwa`` (a 7-DoF arm, ``benchmarks/models/iiwa_like.xml``) under a PD
