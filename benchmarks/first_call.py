@@ -11,7 +11,8 @@ kernel's libraries and JAX's persistent compilation cache): **cold**, the first 
 the directory empty; **warm**, a second process after it. Each worker also records what
 compiled (JAX's monitoring events: programs traced and compiled, seconds of XLA compilation,
 persistent-cache hits; seconds spent building native libraries), which is the profile to read
-where a target is missed. ``--baseline DIR`` times another checkout (e.g. ``git archive`` of an
+where a target is missed; ``--log-compiles`` also keeps each worker's log of every program
+traced and compiled, with the reason of each persistent-cache miss. ``--baseline DIR`` times another checkout (e.g. ``git archive`` of an
 older commit) in the same run, alternating with this tree (``--trees baseline`` times it alone,
 ``--baseline-phases cold`` only its empty-cache phase). Runs split over several processes
 (each its own ``--name``) are joined by ``--merge``. Writes ``NAME.json`` and
@@ -73,6 +74,13 @@ def _worker(case: str, cassie: str | None) -> dict:
     import jaxbody as jb
 
     out = {"case": case, "import_s": time.perf_counter() - t, "jaxbody": str(pathlib.Path(jb.__file__).parent)}
+    if os.environ.get("FIRST_CALL_LOG_COMPILES"):
+        # every program traced and compiled, and why the persistent cache missed, on stderr
+        import logging
+
+        logging.basicConfig(level=logging.WARNING, format="%(message)s")
+        jax.config.update("jax_log_compiles", True)
+        jax.config.update("jax_explain_cache_misses", True)
     events = _profile(jax)
     # the native kernel's C++ builds, timed around the one function that runs the compiler
     build = getattr(getattr(getattr(jb, "backends", None), "native", None), "build", None)
@@ -157,7 +165,7 @@ def _worker(case: str, cassie: str | None) -> dict:
     return out
 
 
-def _run(case, cassie, tree_path, cache_dir, phase) -> dict:
+def _run(case, cassie, tree_path, cache_dir, phase, log: pathlib.Path | None = None) -> dict:
     env = {k: v for k, v in os.environ.items() if k not in ("JAX_COMPILATION_CACHE_DIR", "JAXBODY_KERNEL", "JAXBODY_JAX_CACHE")}
     env["JAXBODY_CACHE_DIR"] = str(cache_dir)
     if tree_path is not None:
@@ -166,7 +174,11 @@ def _run(case, cassie, tree_path, cache_dir, phase) -> dict:
     if cassie:
         cmd += ["--cassie", cassie]
     t = time.perf_counter()
+    if log is not None:
+        env["FIRST_CALL_LOG_COMPILES"] = "1"
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=1800)
+    if log is not None:
+        log.write_text(proc.stderr)
     if proc.returncode != 0:
         return {"case": case, "phase": phase, "error": proc.stderr[-2000:], "process_s": time.perf_counter() - t}
     rec = json.loads(proc.stdout.strip().splitlines()[-1])
@@ -190,6 +202,8 @@ def main(argv=None):
     p.add_argument("--repeats", type=int, default=1)
     p.add_argument("--cases", default="panda,iiwa,disk,four-bar", help=f"comma-separated of {CASES}")
     p.add_argument("--cassie", help="MJCF of a Cassie-like model (floating base, ball joints, <connect> loops)")
+    p.add_argument("--log-compiles", action="store_true",
+                   help="write each worker's log of what it traced and compiled (and why JAX's cache missed) to OUT/NAME_CASE_TREE_PHASE.log")
     p.add_argument("--baseline", type=pathlib.Path, help="another checkout whose jaxbody is timed alongside")
     p.add_argument("--trees", choices=("both", "this", "baseline"), default="both", help="which checkouts to time")
     p.add_argument("--baseline-phases", default="cold,warm", help="phases of the baseline checkout")
@@ -224,7 +238,9 @@ def main(argv=None):
                 phases = ("cold", "warm") if path is None else tuple(args.baseline_phases.split(","))
                 with tempfile.TemporaryDirectory(prefix="jaxbody-first-call-") as cache:
                     for phase in phases:
-                        rec = dict(_run(case, args.cassie, path, cache, phase), tree=tree)
+                        log = (args.out / f"{args.name}_{case}_{'this' if path is None else 'baseline'}_{phase}.log"
+                               if args.log_compiles else None)
+                        rec = dict(_run(case, args.cassie, path, cache, phase, log), tree=tree)
                         record["runs"].append(rec)
                         print({k: v for k, v in rec.items() if not k.startswith("profile") and k not in ("q_final", "grad")}, flush=True)
                         # kept as it goes: a long run stopped early leaves what it measured
