@@ -216,7 +216,7 @@ def main(argv=None):
     if args.merge:
         records = [json.loads(f.read_text()) for f in args.merge]
         record = dict(records[0], runs=[r for rec in records for r in rec["runs"]])
-        record["stamp"]["merged_from"] = [rec["stamp"] for rec in records]
+        record["stamp"] = dict(records[0]["stamp"], merged_from=[dict(rec["stamp"]) for rec in records])
         _write(record, args)
         return
     cases = [c.strip() for c in args.cases.split(",") if c.strip()]
@@ -265,6 +265,9 @@ def _write(record, args):
                      f"{r['native_build_simulate'][0] + r['native_build_grad'][0]:.1f} s ({r['native_build_simulate'][1] + r['native_build_grad'][1]})"))
     md = ["# First results: model import, first simulation and first gradient, empty and warm cache", "",
           stamp_markdown(record["stamp"]), "",
+          *([f"Joined from {len(record['stamp']['merged_from'])} runs made side by side (`--merge`); their load "
+             "averages at start: " + ", ".join(str(m.get("load_average_start", "?")) for m in record["stamp"]["merged_from"]) + ".", ""]
+            if "merged_from" in record["stamp"] else []),
           "Fresh processes with jaxbody's defaults; `cold`: an empty `$JAXBODY_CACHE_DIR`, `warm`: a second process "
           "after it. Seconds; ✗ marks a missed target (cold: model ≤ 1, simulate ≤ 3, gradient ≤ 10; warm: ≤ 1 each). "
           "`compiled`: XLA programs compiled / their XLA compile seconds / persistent-cache hits (JAX's monitoring "
