@@ -1,7 +1,7 @@
 """JAX's persistent compilation cache, on by default in jaxbody's cache directory.
 
 What importing jaxbody sets (and what it leaves to a user who configured JAX's cache or
-switched it off), and — in the slow job — that a native-kernel simulation compiled in one
+switched it off), and — in the slow job — that a native-kernel program compiled in one
 process is loaded from the cache by the next one and gives the same numbers.
 """
 
