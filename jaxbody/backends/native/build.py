@@ -30,7 +30,7 @@ from .codegen import COMMON_TEMPLATE, generate, generate_run, generate_run_vjp, 
 #: mass matrix (:func:`mass_matrix_entries`: for each DoF, the DoFs on its path to the root,
 #: itself included). The generated code grows with these entries and their factorisation, not
 #: with the number of DoFs: a 24-link chain has 300, a 25-DoF humanoid (floating base, two legs
-#: of five hinges, a torso hinge, two arms of four) 186 — its forward dynamics compiles in about
+#: of five hinges, a torso hinge, two arms of four) 194 — its forward dynamics compiles in about
 #: 10 s, once, cached on disk (docs/performance.md, "Choosing a kernel"). Above this the vectorised
 #: kernel (whose program does not grow with the tree) serves.
 MAX_MASS_ENTRIES = 300
