@@ -1,111 +1,280 @@
-"""What the first call of a constrained simulation costs: tracing, lowering, XLA's compile.
+"""What a new user waits for: the first model import, simulation and gradient, cold and warm.
 
-    XLA_FLAGS=--xla_cpu_use_fusion_emitters=false python benchmarks/first_call.py [--name NAME] [--repeats N] [--cases C]
+    python benchmarks/first_call.py [--name NAME] [--cases C] [--repeats N] [--baseline DIR] [--cassie PATH]
+    python benchmarks/first_call.py --merge A.json B.json ... [--name NAME]   # one record from several runs
 
-Each case is one ``jax.jit`` of a ``jb.simulate`` (adaptive Tsit5, 1 s, five saved times),
-split with JAX's ahead-of-time stages: ``.trace`` (Python runs jaxbody and diffrax and records
-the program), ``.lower`` (to StableHLO), ``.compile`` (XLA), and the size of the traced program
-(its equations, counting a nested function's once per call, as XLA inlines them). Every repeat runs in a fresh
-process, so no trace or compile cache is shared between repeats; medians are reported.
-Writes ``NAME.json`` and ``NAME.md`` (default ``first_call``) to ``--out`` (default
-``benchmarks/results``). ``--baseline DIR`` also times jaxbody from another checkout (``DIR``,
-e.g. a ``git worktree`` of an older commit) in the same run, its workers alternating with this
-tree's, so that a drift of the machine's speed hits both alike.
+Each case runs in fresh processes, as a user's script would, with jaxbody's defaults (no
+kernel or solver named): ``import jaxbody``; the model (``jb.from_mjcf`` or the builder);
+the first ``jb.simulate`` of 1 s; then the first ``jax.grad`` of a loss of the final state.
+The two phases of a case share one cache directory (``$JAXBODY_CACHE_DIR``, holding the native
+kernel's libraries and JAX's persistent compilation cache): **cold**, the first process, with
+the directory empty; **warm**, a second process after it. Each worker also records what
+compiled (JAX's monitoring events: programs traced and compiled, seconds of XLA compilation,
+persistent-cache hits; seconds spent building native libraries), which is the profile to read
+where a target is missed; ``--log-compiles`` also keeps each worker's log of every program
+traced and compiled, with the reason of each persistent-cache miss. ``--baseline DIR`` times another checkout (e.g. ``git archive`` of an
+older commit) in the same run, alternating with this tree (``--trees baseline`` times it alone,
+``--baseline-phases cold`` only its empty-cache phase). Runs split over several processes
+(each its own ``--name``) are joined by ``--merge``. Writes ``NAME.json`` and
+``NAME.md`` (default ``first_call``) to ``--out`` (default ``benchmarks/results``).
 
-Cases: the four-bar linkage (three hinged bodies, a loop closure; ``benchmarks/maggi.py``),
-the same linkage driven by a prescribed crank angle, and the rolling disk of Maggi's paper
-(``jaxbody.examples.disk``).
+Targets (docs/performance.md, "First calls and compile time"): with an empty cache, import ≤ 1 s, first
+simulation ≤ 3 s, first gradient ≤ 10 s; with a warm cache ≤ 1 s each.
+
+Cases: ``panda`` and ``iiwa`` (a 7-DoF arm, ``benchmarks/models/iiwa_like.xml``) under a PD
+law whose gains the gradient is taken with respect to; ``disk`` (the rolling disk of Maggi's
+paper, ``jaxbody.examples.disk``) and ``four-bar`` (three hinged bodies and a loop closure,
+``benchmarks/maggi.py``), whose gradient is with respect to a scale of the initial velocity
+(which keeps it admissible); ``cassie`` (a floating base with ball joints and ``<connect>``
+loops; only with ``--cassie PATH``, its MJCF).
 """
 
 import argparse
 import json
+import os
 import pathlib
+import subprocess
 import sys
+import tempfile
 import time
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-from _common import RESULTS, alternate, checkouts, count_eqns, load_average, markdown_table, stamp, stamp_markdown  # noqa: E402
+from _common import RESULTS, checkouts, load_average, markdown_table, stamp, stamp_markdown  # noqa: E402
 
-CASES = ("four-bar", "driven four-bar", "rolling disk")
+CASES = ("panda", "iiwa", "disk", "four-bar", "cassie")
+HERE = pathlib.Path(__file__).resolve().parent
+TARGETS = {"cold": {"model_s": 1.0, "simulate_s": 3.0, "grad_s": 10.0}, "warm": {"model_s": 1.0, "simulate_s": 1.0, "grad_s": 1.0}}
 
 
-def _one(case: str) -> dict:
-    """Time the three stages of one case in this process (a fresh one)."""
+def _profile(jax):
+    """JAX's compile events of this process, summed: {event: [count, seconds]}."""
+    events: dict = {}
+
+    def duration(name, secs, **_):
+        c = events.setdefault(name, [0, 0.0])
+        c[0] += 1
+        c[1] += secs
+
+    def event(name, **_):
+        events.setdefault(name, [0, 0.0])[0] += 1
+
+    jax.monitoring.register_event_duration_secs_listener(duration)
+    jax.monitoring.register_event_listener(event)
+    return events
+
+
+def _worker(case: str, cassie: str | None) -> dict:
+    """One fresh process: import, model, first simulate, first gradient."""
+    t = time.perf_counter()
     import jax
 
     jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp
 
     import jaxbody as jb
-    from jaxbody import constraints as jc
-    from jaxbody import maggi
-    from maggi import disk_states, four_bar
 
-    if case == "rolling disk":
-        _, system, q0, v0 = disk_states()[2]
+    out = {"case": case, "import_s": time.perf_counter() - t, "jaxbody": str(pathlib.Path(jb.__file__).parent)}
+    if os.environ.get("FIRST_CALL_LOG_COMPILES"):
+        # every program traced and compiled, and why the persistent cache missed, on stderr
+        import logging
+
+        logging.basicConfig(level=logging.WARNING, format="%(message)s")
+        jax.config.update("jax_log_compiles", True)
+        jax.config.update("jax_explain_cache_misses", True)
+    events = _profile(jax)
+    # the native kernel's C++ builds, timed around the one function that runs the compiler
+    build = getattr(getattr(getattr(jb, "backends", None), "native", None), "build", None)
+    native_s = [0.0, 0]
+    if build is not None and hasattr(build, "build_library"):
+        original = build.build_library
+
+        def timed(source, stem):
+            t0 = time.perf_counter()
+            path = original(source, stem)
+            native_s[0] += time.perf_counter() - t0
+            native_s[1] += 1
+            return path
+
+        build.build_library = timed
+
+    t = time.perf_counter()
+    if case in ("panda", "iiwa", "cassie"):
+        path = {"panda": HERE.parent / "jaxbody" / "models" / "panda.xml", "iiwa": HERE / "models" / "iiwa_like.xml"}.get(case, cassie)
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            model = jb.from_mjcf(str(path))
+        out["model_s"] = time.perf_counter() - t
+        q0, v0 = model.qpos0 + (0.3 if case != "cassie" else 0.0), jnp.zeros(model.nv)
+        if case == "cassie":
+            system = jb.scene(model)
+            out["scene"] = repr(system)
+
+            def loss(s):  # with respect to a scale of gravity (any velocity would have to satisfy the loops)
+                sc = jb.scene(model, gravity=s * model.gravity)
+                return jnp.sum(jb.simulate(sc, q0, v0, 1.0).q[-1] ** 2)
+
+            arg = jnp.asarray(1.0)
+        else:
+            q_ref = model.qpos0
+
+            def pd(t, q, v, gains):
+                return gains[0] * (q_ref - q) - gains[1] * v
+
+            gains = jnp.asarray([20.0, 2.0])
+            system = jb.scene(model, actuation=(pd, gains))
+            out["scene"] = repr(system)
+
+            def loss(g):
+                sc = jb.scene(model, actuation=(pd, g))
+                return jnp.sum(jb.simulate(sc, q0, v0, 1.0).q[-1] ** 2)
+
+            arg = gains
     else:
-        system, q0, v0 = four_bar()
-        if case == "driven four-bar":
-            model = system.base.model
-            drive = jc.PrescribedCoordinate(model, "crank_hinge0", lambda t, p: q0[0] + 2.0 * t)
-            system = maggi.constrain(system, [drive], q_ref=q0)
+        from maggi import disk_states, four_bar
 
-    def run(q0, v0):
-        sol = jb.simulate(system, q0, v0, 1.0, rtol=1e-10, atol=1e-10, n_save=5)
-        return sol.q[-1], sol.v[-1]
+        if case == "disk":
+            _, system, q0, v0 = disk_states()[2]
+        else:
+            system, q0, v0 = four_bar()
+        out["model_s"] = time.perf_counter() - t
+        out["scene"] = type(system).__name__
 
-    q0, v0 = jnp.asarray(q0), jnp.asarray(v0)
-    t0 = time.perf_counter()
-    traced = jax.jit(run).trace(q0, v0)
-    t1 = time.perf_counter()
-    lowered = traced.lower()
-    t2 = time.perf_counter()
-    compiled = lowered.compile()
-    t3 = time.perf_counter()
-    q1, _ = compiled(q0, v0)
-    jax.block_until_ready(q1)
-    return dict(case=case, trace_s=t1 - t0, lower_s=t2 - t1, compile_s=t3 - t2, q_final=[float(x) for x in q1],
-                eqns=count_eqns(jax, traced.jaxpr.jaxpr), jaxbody=str(pathlib.Path(jb.__file__).parent))
+        def loss(s):
+            return jnp.sum(jb.simulate(system, q0, s * v0, 1.0).q[-1] ** 2)
+
+        arg = jnp.asarray(1.0)
+    stage = {k: list(v) for k, v in events.items()}
+    t = time.perf_counter()
+    sol = jb.simulate(system, q0, v0, 1.0)
+    jax.block_until_ready(sol.q)
+    out["simulate_s"] = time.perf_counter() - t
+    out["q_final"] = [float(x) for x in sol.q[-1]]
+    out["profile_simulate"] = {k: [v[0] - stage.get(k, [0, 0.0])[0], v[1] - stage.get(k, [0, 0.0])[1]] for k, v in events.items()}
+    out["native_build_simulate"] = list(native_s)
+    stage = {k: list(v) for k, v in events.items()}
+    native_before = list(native_s)
+    t = time.perf_counter()
+    g = jax.grad(loss)(arg)
+    jax.block_until_ready(g)
+    out["grad_s"] = time.perf_counter() - t
+    out["grad"] = [float(x) for x in jnp.atleast_1d(g)]
+    out["profile_grad"] = {k: [v[0] - stage.get(k, [0, 0.0])[0], v[1] - stage.get(k, [0, 0.0])[1]] for k, v in events.items()}
+    out["native_build_grad"] = [native_s[0] - native_before[0], native_s[1] - native_before[1]]
+    return out
+
+
+def _run(case, cassie, tree_path, cache_dir, phase, log: pathlib.Path | None = None) -> dict:
+    env = {k: v for k, v in os.environ.items() if k not in ("JAX_COMPILATION_CACHE_DIR", "JAXBODY_KERNEL", "JAXBODY_JAX_CACHE")}
+    env["JAXBODY_CACHE_DIR"] = str(cache_dir)
+    if tree_path is not None:
+        env["PYTHONPATH"] = os.pathsep.join([str(tree_path), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    cmd = [sys.executable, str(pathlib.Path(__file__).resolve()), "--worker", case]
+    if cassie:
+        cmd += ["--cassie", cassie]
+    t = time.perf_counter()
+    if log is not None:
+        env["FIRST_CALL_LOG_COMPILES"] = "1"
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=1800)
+    if log is not None:
+        log.write_text(proc.stderr)
+    if proc.returncode != 0:
+        return {"case": case, "phase": phase, "error": proc.stderr[-2000:], "process_s": time.perf_counter() - t}
+    rec = json.loads(proc.stdout.strip().splitlines()[-1])
+    rec.update(phase=phase, process_s=time.perf_counter() - t)
+    return rec
+
+
+def _compiles(profile: dict) -> str:
+    """``programs compiled / XLA seconds / cache hits`` from a worker's profile."""
+    if not profile:
+        return "not recorded"
+    n, secs = profile.get("/jax/core/compile/backend_compile_duration", [0, 0.0])
+    hits = profile.get("/jax/compilation_cache/cache_hits", [0, 0.0])[0]
+    return f"{n} / {secs:.1f} s / {hits}"
 
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--name", default="first_call")
     p.add_argument("--out", type=pathlib.Path, default=RESULTS)
-    p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--cases", default=",".join(CASES), help=f"comma-separated of {CASES}")
+    p.add_argument("--repeats", type=int, default=1)
+    p.add_argument("--cases", default="panda,iiwa,disk,four-bar", help=f"comma-separated of {CASES}")
+    p.add_argument("--cassie", help="MJCF of a Cassie-like model (floating base, ball joints, <connect> loops)")
+    p.add_argument("--log-compiles", action="store_true",
+                   help="write each worker's log of what it traced and compiled (and why JAX's cache missed) to OUT/NAME_CASE_TREE_PHASE.log")
     p.add_argument("--baseline", type=pathlib.Path, help="another checkout whose jaxbody is timed alongside")
+    p.add_argument("--trees", choices=("both", "this", "baseline"), default="both", help="which checkouts to time")
+    p.add_argument("--baseline-phases", default="cold,warm", help="phases of the baseline checkout")
+    p.add_argument("--merge", nargs="+", type=pathlib.Path, help="records (JSON) of earlier runs to join into one")
     p.add_argument("--worker", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.worker:
-        print(json.dumps(_one(args.worker)))
+        print(json.dumps(_worker(args.worker, args.cassie)))
         return
-    record = {"stamp": stamp(), "runs": []}
+    if args.merge:
+        records = [json.loads(f.read_text()) for f in args.merge]
+        record = dict(records[0], runs=[r for rec in records for r in rec["runs"]])
+        record["stamp"] = dict(records[0]["stamp"], merged_from=[dict(rec["stamp"]) for rec in records])
+        _write(record, args)
+        return
     cases = [c.strip() for c in args.cases.split(",") if c.strip()]
     for case in cases:
         if case not in CASES:
             raise SystemExit(f"unknown case {case!r}: one of {CASES}")
+        if case == "cassie" and not args.cassie:
+            raise SystemExit("case 'cassie' needs --cassie PATH (its MJCF)")
     trees, baseline = checkouts(args.baseline)
+    if args.trees != "both":
+        trees = {k: v for k, v in trees.items() if (v is None) == (args.trees == "this")}
+    record = {"stamp": stamp(), "targets": TARGETS, "runs": []}
     if baseline:
         record["baseline"] = baseline
-    record["runs"] = alternate(__file__, cases, trees, args.repeats)
-    import numpy as np
-
-    rows = []
-    for case in cases:
-        for tree in trees:
-            runs = [r for r in record["runs"] if r["case"] == case and r["tree"] == tree]
-            med = {k: float(np.median([r[k] for r in runs])) for k in ("trace_s", "lower_s", "compile_s")}
-            rows.append((case, tree, runs[0]["eqns"], f"{med['trace_s']:.2f}", f"{med['lower_s']:.2f}",
-                         f"{med['compile_s']:.2f}", f"{sum(med.values()):.2f}", len(runs)))
+    args.out.mkdir(parents=True, exist_ok=True)
+    for _ in range(args.repeats):
+        for case in cases:
+            for tree, path in trees.items():
+                phases = ("cold", "warm") if path is None else tuple(args.baseline_phases.split(","))
+                with tempfile.TemporaryDirectory(prefix="jaxbody-first-call-") as cache:
+                    for phase in phases:
+                        log = (args.out / f"{args.name}_{case}_{'this' if path is None else 'baseline'}_{phase}.log"
+                               if args.log_compiles else None)
+                        rec = dict(_run(case, args.cassie, path, cache, phase, log), tree=tree)
+                        record["runs"].append(rec)
+                        print({k: v for k, v in rec.items() if not k.startswith("profile") and k not in ("q_final", "grad")}, flush=True)
+                        # kept as it goes: a long run stopped early leaves what it measured
+                        (args.out / f"{args.name}.json").write_text(json.dumps(record, indent=1))
     record["stamp"]["load_average_end"] = load_average()
+    _write(record, args)
+
+
+def _write(record, args):
+    """The record's JSON and Markdown table."""
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / f"{args.name}.json").write_text(json.dumps(record, indent=1))
-    md = ["# First call of a constrained simulation: trace, lower, compile", "", stamp_markdown(record["stamp"]), "",
-          "One `jax.jit` of `jb.simulate` (Tsit5, rtol = atol = 1e-10, 1 s, five saved times), each repeat in a fresh "
-          "process; medians in seconds.", "",
-          markdown_table(["case", "jaxbody", "traced equations", "trace", "lower", "XLA compile", "total", "repeats"], rows), "",
-          "Traced equations: every equation of the traced program, those of nested functions once per call.", ""]
+    rows = []
+    for r in record["runs"]:
+        if "error" in r:
+            rows.append((r["case"], r["tree"], r["phase"], "failed: " + r["error"].strip().splitlines()[-1][:80], "", "", "", "", "", ""))
+            continue
+        tgt = TARGETS[r["phase"]]
+        mark = lambda k: f"{r[k]:.2f}" + ("" if r[k] <= tgt[k] else " ✗")  # noqa: E731
+        rows.append((r["case"], r["tree"], r["phase"], f"{r['import_s']:.2f}", mark("model_s"), mark("simulate_s"), mark("grad_s"),
+                     _compiles(r["profile_simulate"]), _compiles(r["profile_grad"]),
+                     f"{r['native_build_simulate'][0] + r['native_build_grad'][0]:.1f} s ({r['native_build_simulate'][1] + r['native_build_grad'][1]})"))
+    md = ["# First results: model import, first simulation and first gradient, empty and warm cache", "",
+          stamp_markdown(record["stamp"]), "",
+          *([f"Joined from {len(record['stamp']['merged_from'])} runs made side by side (`--merge`); their load "
+             "averages at start: " + ", ".join(str(m.get("load_average_start", "?")) for m in record["stamp"]["merged_from"]) + ".", ""]
+            if "merged_from" in record["stamp"] else []),
+          "Fresh processes with jaxbody's defaults; `cold`: an empty `$JAXBODY_CACHE_DIR`, `warm`: a second process "
+          "after it. Seconds; ✗ marks a missed target (cold: model ≤ 1, simulate ≤ 3, gradient ≤ 10; warm: ≤ 1 each). "
+          "`compiled`: XLA programs compiled / their XLA compile seconds / persistent-cache hits (JAX's monitoring "
+          "events; a hit is a program loaded instead of compiled). `native builds`: seconds in the C++ compiler (libraries "
+          "looked up or built).", "",
+          markdown_table(["case", "jaxbody", "phase", "import jaxbody", "model", "first simulate", "first gradient",
+                          "compiled (simulate)", "compiled (gradient)", "native builds"], rows), ""]
     (args.out / f"{args.name}.md").write_text("\n".join(md))
     print("\n".join(md))
 

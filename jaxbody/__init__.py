@@ -5,9 +5,16 @@ quasi-coordinates (Byachkov). One engine with one state: a :class:`Model` (or a 
 system), the state pytree :class:`Data` computed once by :func:`compute_data`, and kernels
 ``jb.kernels.*(model, data, ...)``; the functions ``jb.mass_matrix(model, q)`` ... are those
 kernels behind one input check (:func:`check_inputs`). Conventions: ``docs/conventions.md``.
-The library never changes global JAX configuration on import; enable float64 with
+The library changes one global JAX setting on import: it turns JAX's persistent compilation
+cache on in its own cache directory, unless ``JAXBODY_JAX_CACHE=0`` or the user configured one
+(:mod:`jaxbody.compilation_cache`). Enable float64 with
 ``jax.config.update("jax_enable_x64", True)`` for accuracy work.
 """
+
+# first: JAX decides at the first compilation whether its persistent cache is used
+from . import compilation_cache as compilation_cache
+
+compilation_cache.enable()
 
 from .tree import BodyTree as BodyTree
 from .joints import (

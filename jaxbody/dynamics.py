@@ -207,8 +207,8 @@ def forward_dynamics(
     """Accelerations ``a = M⁻¹ (tau - bias + Jᵀ external [+ passive])``.
 
     Runs :func:`jaxbody.backends.acceleration` with ``kernel`` (``None``: the default,
-    vectorised unless ``$JAXBODY_KERNEL`` says otherwise; ``"auto"``: the native kernel where
-    it can be built, the fastest on CPU; the same numbers either way, docs/performance.md).
+    ``"auto"`` unless ``$JAXBODY_KERNEL`` says otherwise: the native kernel where it can be
+    built, the fastest on CPU; the same numbers either way, docs/performance.md).
 
     ``include_passive=True`` adds the joint springs and dampers (as ``jb.simulate`` does for a
     model). Planar system: :func:`jaxbody.planar.forward_dynamics` (absolute angular

@@ -1,5 +1,6 @@
 """Test configuration: every test runs in float64 with strict dtype promotion, so a silent
-narrowing to float32 or an implicit promotion between dtypes fails the test; the processes of
+narrowing to float32 or an implicit promotion between dtypes fails the test; the vectorised
+kernel is the default kernel unless the caller chose one; the processes of
 one run (pytest-xdist workers, and the ``jaxbody`` commands, notebooks and benchmark scripts
 the tests start) share one JAX compilation cache, so a program several tests compile the same
 way is compiled once per run; and XLA compiles without its machine-code optimiser (below)."""
@@ -43,6 +44,13 @@ if not os.environ.get("JAX_COMPILATION_CACHE_DIR"):
     os.environ["JAX_COMPILATION_CACHE_DIR"] = _OWN_CACHE
     # compilations under 0.1 s (single eager operations) are cheaper to repeat than to store
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.1")
+
+# The suite builds hundreds of different trees (random models, chains of every length): on
+# jaxbody's default kernel ("auto": the native kernel) each would cost a C++ build of seconds.
+# The suite runs the vectorised kernel unless the caller sets JAXBODY_KERNEL (``JAXBODY_KERNEL=auto
+# ./run tests`` runs it on the default); the processes it starts inherit the choice. Tests of
+# the default itself remove the variable (test_scene.py, test_backends_native.py).
+os.environ.setdefault("JAXBODY_KERNEL", "vectorised")
 
 import jax
 import pytest

@@ -9,6 +9,8 @@ in float32, and inside ``jb.simulate``.
 """
 
 import os
+import pathlib
+import warnings
 
 import equinox as eqx
 import jax
@@ -24,6 +26,7 @@ from jaxbody import backends
 from jaxbody.backends import native
 
 pytestmark = pytest.mark.filterwarnings("ignore:from_mjcf")
+REPO = pathlib.Path(__file__).resolve().parents[1]
 
 
 def _states(model, rng, batch):
@@ -393,12 +396,20 @@ def test_unavailable_native_kernel_is_a_clear_error_and_auto_falls_back(monkeypa
     from _support.random_models import hinge_chain
 
     model = hinge_chain(2)
-    # the package re-exports what its build module defines and uses: both say unavailable
-    monkeypatch.setattr(native, "available", lambda: False)
-    monkeypatch.setattr(native.build, "available", lambda: False)
-    with pytest.raises(RuntimeError, match="kernel='native' needs a C\\+\\+17 compiler"):
+    # the package re-exports what its build module defines and uses: both say why
+    reason = "no C++ compiler found (g++; set $CXX to one)"
+    monkeypatch.setattr(native, "unavailable_reason", lambda: reason)
+    monkeypatch.setattr(native.build, "unavailable_reason", lambda: reason)
+    monkeypatch.setattr(backends, "_warned", set())
+    assert not native.available() and not native.applies(model)
+    with pytest.raises(RuntimeError, match=r"kernel='native' needs a C\+\+17 compiler .*\(no C\+\+ compiler found"):
         backends.acceleration(model, jnp.zeros(2), jnp.zeros(2), kernel="native")
-    assert backends.resolve_kernel(model, "auto") == "vectorised"
+    # falling back says why, in one warning per reason and process
+    with pytest.warns(backends.KernelFallbackWarning, match=r"runs the vectorised kernel, not the native one: no C\+\+ compiler"):
+        assert backends.resolve_kernel(model, "auto") == "vectorised"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert backends.resolve_kernel(hinge_chain(3), "auto") == "vectorised"
     with pytest.raises(ValueError, match="kernel must be one of"):
         backends.resolve_kernel(model, "fast")
     # a compiler that fails: the error shows the command and the compiler's message
@@ -406,6 +417,27 @@ def test_unavailable_native_kernel_is_a_clear_error_and_auto_falls_back(monkeypa
     monkeypatch.setenv("JAXBODY_CACHE_DIR", str(tmp_path))
     with pytest.raises(RuntimeError, match="building the native kernel failed"):
         native.build.build_library("int x;", "probe")
+
+
+def test_auto_limit_counts_mass_matrix_entries_not_dofs(monkeypatch):
+    """``kernel="auto"`` bounds the tree by the entries of its tree-sparse mass matrix (what the
+    generated code grows with), so a 25-DoF humanoid gets the native kernel and a 25-link chain
+    does not; the count is the pairs of DoFs whose bodies are on one path to the root (a dense
+    walk of the tree's path matrix here)."""
+    from _support.random_models import hinge_chain
+
+    monkeypatch.setattr(backends, "_warned", set())
+    humanoid = jb.from_mjcf(str(REPO / "benchmarks" / "models" / "humanoid25.xml"))
+    body = np.asarray(humanoid.joints.dof_body)
+    on_path = humanoid.tree.path_matrix[body][:, body]  # [i, j]: DoF j's body is i's or carries it
+    assert native.mass_matrix_entries(humanoid) == int(np.tril(on_path).sum()) == 194
+    assert [native.mass_matrix_entries(hinge_chain(n)) for n in (1, 24, 25)] == [1, 300, 325]
+    if native.available():
+        assert humanoid.nv == 25 and backends.resolve_kernel(humanoid, "auto") == "native"
+        with pytest.warns(backends.KernelFallbackWarning, match=r"25 DoFs\) has 325 mass-matrix entries, above .* limit of 300"):
+            assert backends.resolve_kernel(hinge_chain(25), "auto") == "vectorised"
+        # asked for by name, the native kernel takes any tree
+        assert backends.resolve_kernel(hinge_chain(25), "native") == "native"
 
 
 def test_concurrent_builders_of_one_library_compile_it_once(tmp_path):

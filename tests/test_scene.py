@@ -494,3 +494,27 @@ def test_model_scene_is_a_dynamical_system():
     )
     s = jb.examples.double_pendulum()
     assert s.acceleration(0.0, jnp.array([0.3, 0.1]), jnp.zeros(2), None).shape == (2,)
+
+
+def test_default_kernel_is_native_and_wins_over_the_planar_path(monkeypatch):
+    """The real default (the suite pins the vectorised kernel, conftest.py): ``kernel=None`` is
+    ``"auto"``, the native kernel where it can be built; a planar chain then takes the spatial
+    path, whose one native call is faster than the planar path's JAX code
+    (benchmarks/planar_choice.py), and ``repr`` names the path and the kernel. Without the native
+    kernel the planar path stays. Nothing is compiled here: the choice is made when the scene is built."""
+    monkeypatch.delenv("JAXBODY_KERNEL", raising=False)
+    assert jb.backends.default_kernel() == "auto"
+    m = chain_model(2)
+    if jb.backends.native.available():
+        default = jb.scene(m)
+        assert (default.path, default.runs) == ("spatial", "native")
+        assert repr(default) == "Scene(Model, path='spatial', kernel='native', effects=['gravity'])"
+    # asked for, or without the native kernel, the planar path stays
+    assert jb.scene(m, planar=True).path == "planar"
+    assert repr(jb.scene(m, kernel="vectorised")) == "Scene(Model, path='planar', kernel='jax', effects=['gravity'])"
+    monkeypatch.setenv("JAXBODY_KERNEL", "vectorised")
+    assert jb.scene(m).path == "planar"
+    assert jb.scene(m, planar=False, kernel="vectorised").runs == "vectorised"
+    monkeypatch.setenv("JAXBODY_KERNEL", "fastest")
+    with pytest.raises(ValueError, match=r"\$JAXBODY_KERNEL must be one of"):
+        jb.scene(m)

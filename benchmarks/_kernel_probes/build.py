@@ -8,7 +8,7 @@ dynamics (``fd``), its forward-mode derivative (``jvp``) and its reverse-mode de
     .venv/bin/python benchmarks/kernels.py build [--models panda,chain7,chain12,chain20]
 
 This is a one-time cost per tree (the libraries are cached in ``$JAXBODY_CACHE_DIR``); it is
-what sets :data:`jaxbody.backends.native.MAX_DOFS` and :data:`jaxbody.backends.native.MAX_DERIVATIVE_DOFS`.
+what sets :data:`jaxbody.backends.native.MAX_MASS_ENTRIES` and :data:`jaxbody.backends.native.MAX_DERIVATIVE_DOFS`.
 Writes ``benchmarks/results/<name>.{md,json}`` (default ``native_build``).
 """
 

@@ -179,8 +179,16 @@ class Scene(eqx.Module):
         # the constraints see the same context as the vector field (rheonomic rows need t)
         return self.constraints.drift(self.context(jnp.asarray(t, v.dtype), q, v))
 
+    @property
+    def runs(self) -> str:
+        """What computes the vector field: the kernel's name on the spatial path (``"native"``,
+        ``"unrolled"``, ``"vectorised"``), ``"jax"`` for the planar path's and protocol
+        systems' own JAX code."""
+        return "jax"
+
     def __repr__(self):
-        return f"Scene({type(self.system).__name__}, path={self.path!r}, effects={list(self.effect_names)})"
+        return (f"Scene({type(self.system).__name__}, path={self.path!r}, kernel={self.runs!r}, "
+                f"effects={list(self.effect_names)})")
 
 
 class ModelScene(Scene):

@@ -4,7 +4,8 @@ Choices made once, when the scene is built (so that an undeclared effect is abse
 traced program, not a zero added at every step):
 
 * **path**: :class:`~jaxbody.scene.PlanarScene` when every joint is a hinge (one per body, fixed
-  base, no armature), all hinge axes are parallel and gravity lies in their plane;
+  base, no armature), all hinge axes are parallel and gravity lies in their plane, unless the
+  spatial path would run the native kernel as one call (faster: the planar path is JAX code);
   :class:`~jaxbody.scene.SpatialScene` otherwise; :class:`~jaxbody.scene.SystemScene` for
   planar systems and other objects with the simulation protocol;
 * **no quaternions**: ``q̇ = v`` without the per-kind quaternion kinematics when the model has
@@ -83,13 +84,16 @@ def scene(
             loops; keep both with ``[*jaxbody.constraints.loop_closures(model), ...]``. A
             ``ConstrainedSystem`` passed as ``system`` brings its own constraints.
         effects: further effect modules (contact, limits, ...), appended in order.
-        planar: ``None`` chooses the planar absolute-angle path when the model allows it;
-            ``False`` forces the spatial path; ``True`` requires the planar path.
+        planar: ``None`` chooses the planar absolute-angle path when the model allows it and
+            the spatial path would not run the native kernel (which is faster); ``False``
+            forces the spatial path; ``True`` requires the planar path.
         kernel: forward-dynamics kernel of the spatial path (:func:`jaxbody.backends.acceleration`):
-            ``None`` (:data:`jaxbody.backends.DEFAULT_KERNEL`, the vectorised kernel unless
+            ``None`` (:func:`jaxbody.backends.default_kernel`: ``"auto"`` unless
             ``$JAXBODY_KERNEL`` says otherwise), ``"auto"`` (the native kernel where it can be
-            built, :func:`jaxbody.backends.resolve_kernel`), ``"native"``, ``"unrolled"`` or
-            ``"vectorised"``. docs/performance.md says when each is faster.
+            built, else the fastest that can run, saying why in one warning:
+            :func:`jaxbody.backends.resolve_kernel`), ``"native"``, ``"unrolled"`` or
+            ``"vectorised"``. docs/performance.md says when each is faster; ``repr(scene)``
+            names the path and the kernel that runs.
 
     Returns:
         The scene.
@@ -176,8 +180,15 @@ def scene(
     # further effects last: the declared order is the order of the work vector and of its names
     declared.extend(effects)
 
-    # loads and constraints are spatial: a scene with either keeps the spatial path
-    planar_ok = planar is not False and loads is None and constraints is None
+    spatial = SpatialScene(system=model, effects=tuple(declared), constraints=constraints, kernel=kernel)
+    # loads and constraints are spatial: a scene with either keeps the spatial path. A
+    # specialisation must never be slower than the general path: the planar path is JAX code,
+    # and a spatial scene whose vector field is one native call runs the same chain about 4x
+    # faster (the double pendulum's RK4 steps, benchmarks/planar_choice.py), so when the choice is ours the native kernel wins (and the
+    # planarity test, a compiled kinematics pass, is not even run); without it the planar
+    # path is the faster one
+    native_wins = planar is None and spatial.direct_kernel() == "native"
+    planar_ok = planar is not False and loads is None and constraints is None and not native_wins
     # the planar path needs gravity in the plane of motion (a field out of it would be lost)
     grav = [e.vector for e in declared if isinstance(e, Gravity)]
     converted = aligned_system(model, grav[0] if grav else None) if planar_ok else None
@@ -190,7 +201,7 @@ def scene(
         psys, plane, signs = converted
         out = PlanarScene(system=model, effects=tuple(declared), planar=psys, plane=plane, axis_sign=signs)
     else:
-        out = SpatialScene(system=model, effects=tuple(declared), constraints=constraints, kernel=kernel)
+        out = spatial
     for e in out.effects:
         e.check(out)
     return out

@@ -27,7 +27,8 @@ class SpatialScene(ModelScene):
 
     Attributes:
         kernel: forward-dynamics kernel (:func:`jaxbody.backends.acceleration`); ``None`` for
-            :data:`jaxbody.backends.DEFAULT_KERNEL`.
+            :func:`jaxbody.backends.default_kernel` (``"auto"`` unless ``$JAXBODY_KERNEL`` says
+            otherwise). :attr:`runs` names the one that runs.
     """
 
     kernel: str | None = eqx.field(static=True, default=None)
@@ -48,6 +49,11 @@ class SpatialScene(ModelScene):
         return self.constraints is None and all(
             isinstance(e, (Gravity, JointSprings, JointDampers, Actuation)) for e in self.effects
         )
+
+    @property
+    def runs(self) -> str:
+        # a field that is not direct runs the vectorised kinematics and mass matrix of the scene
+        return self.direct_kernel() or "vectorised"
 
     def direct_kernel(self) -> str | None:
         if not self.is_direct():

@@ -70,7 +70,8 @@ dynamics), :mod:`.step`, :mod:`.solve` and :mod:`.energy` (one RK4 step, whole s
 """
 
 from .adaptive import Control, adaptive_checkpoint_layout, adaptive_solve, adaptive_solve_vjp
-from .build import BUILDS, MAX_DOFS, SPIN_NS, WIDE_BATCH, applies, available, build_for, threads
+from .build import (BUILDS, MAX_MASS_ENTRIES, SPIN_NS, WIDE_BATCH, applies, available, build_for, mass_matrix_entries, threads,
+                    too_large_reason, unavailable_reason)
 from .codegen import MODES
 from .energy import energies
 from .primitives import MAX_DERIVATIVE_DOFS, forward_dynamics
@@ -85,7 +86,7 @@ __all__ = [
     "adaptive_solve",
     "adaptive_solve_vjp",
     "MAX_DERIVATIVE_DOFS",
-    "MAX_DOFS",
+    "MAX_MASS_ENTRIES",
     "MODES",
     "SPIN_NS",
     "WIDE_BATCH",
@@ -95,10 +96,13 @@ __all__ = [
     "checkpoint_layout",
     "energies",
     "forward_dynamics",
+    "mass_matrix_entries",
     "parameter_vector",
     "rk4_rollout",
     "rk4_rollout_checkpointed",
     "rk4_rollout_vjp",
     "rk4_step",
     "threads",
+    "too_large_reason",
+    "unavailable_reason",
 ]

@@ -22,17 +22,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ...compilation_cache import cache_root
 from ...model import Model
 from .codegen import (COMMON_TEMPLATE, generate, generate_adaptive, generate_adaptive_vjp, generate_run, generate_run_vjp,
                       HANDLER_TEMPLATE, result_widths, SCALAR_TYPES)
 from .tableaux import tableau
 
-#: Largest number of DoFs ``kernel="auto"`` gives the native kernel. The generated code grows
-#: with the mass-matrix entries on each DoF's ancestor chain and their factorisation (for a
-#: chain, quadratically and cubically): the 7-DoF Panda arm compiles in about 4 s, a 20-link
-#: chain in about 25 s (once; cached on disk). Above this the vectorised kernel (whose program
-#: does not grow with the tree) serves.
-MAX_DOFS = 24
+#: Largest tree ``kernel="auto"`` gives the native kernel, counted in entries of the tree-sparse
+#: mass matrix (:func:`mass_matrix_entries`: for each DoF, the DoFs on its path to the root,
+#: itself included). The generated code grows with these entries and their factorisation, not
+#: with the number of DoFs: a 24-link chain has 300, a 25-DoF humanoid (floating base, two legs
+#: of five hinges, a torso hinge, two arms of four) 194 — its forward dynamics compiles in about
+#: 10 s, once, cached on disk (docs/performance.md, "Choosing a kernel"). Above this the vectorised
+#: kernel (whose program does not grow with the tree) serves.
+MAX_MASS_ENTRIES = 300
 
 _lock = threading.RLock()
 
@@ -43,15 +46,53 @@ def _compiler() -> str | None:
 
 
 @functools.cache
+def unavailable_reason() -> str | None:
+    """Why the native kernel cannot be built here (``None`` where it can): no C++ compiler, no
+    XLA FFI headers, or a backend other than the CPU."""
+    if jax.default_backend() != "cpu":
+        return f"the native kernel runs on the CPU and JAX's default backend is {jax.default_backend()}"
+    if _compiler() is None:
+        return f"no C++ compiler found ({os.environ.get('CXX', 'g++')}; set $CXX to one)"
+    include = Path(jax.ffi.include_dir()) / "xla" / "ffi" / "api" / "ffi.h"
+    if not include.is_file():
+        return f"jaxlib ships no XLA FFI headers ({include} is missing)"
+    return None
+
+
 def available() -> bool:
     """Whether the native kernel can be built here: a C++ compiler, XLA's FFI headers, a CPU."""
-    include = Path(jax.ffi.include_dir()) / "xla" / "ffi" / "api" / "ffi.h"
-    return _compiler() is not None and include.is_file() and jax.default_backend() == "cpu"
+    return unavailable_reason() is None
+
+
+def mass_matrix_entries(model: Model) -> int:
+    """Entries of the tree-sparse mass matrix's lower triangle: for each DoF, the DoFs on its
+    path to the root (itself included) — what the native kernel's generated code grows with."""
+    parent, dof_body = model.tree.parent_array, model.joints.dof_body
+    dofs_on_body = np.bincount(np.asarray(dof_body, dtype=np.int64), minlength=model.n_body)
+    # bodies come after their parents: DoFs on the path from the root to each body, in one pass
+    above = np.zeros(model.n_body, dtype=np.int64)
+    for b in range(model.n_body):
+        above[b] = dofs_on_body[b] + (above[parent[b]] if parent[b] >= 0 else 0)
+    # the k-th DoF of a body sees the body's ancestors' DoFs and the k first of its own
+    entries = 0
+    for b in range(model.n_body):
+        base = above[b] - dofs_on_body[b]
+        entries += int(dofs_on_body[b] * base + dofs_on_body[b] * (dofs_on_body[b] + 1) // 2)
+    return entries
+
+
+def too_large_reason(model: Model) -> str | None:
+    """Why ``kernel="auto"`` leaves ``model`` to another kernel for its size (``None``: it does not)."""
+    entries = mass_matrix_entries(model)
+    if entries <= MAX_MASS_ENTRIES:
+        return None
+    return (f"the tree ({model.nv} DoFs) has {entries} mass-matrix entries, above the native kernel's "
+            f"limit of {MAX_MASS_ENTRIES} (jaxbody.backends.native.MAX_MASS_ENTRIES); kernel='native' builds it anyway")
 
 
 def applies(model: Model) -> bool:
-    """Whether ``kernel="auto"`` gives ``model`` the native kernel (small enough, buildable)."""
-    return 0 < model.nv <= MAX_DOFS and available()
+    """Whether ``kernel="auto"`` gives ``model`` the native kernel (within :data:`MAX_MASS_ENTRIES`, buildable)."""
+    return model.nv > 0 and available() and too_large_reason(model) is None
 
 
 #: Nanoseconds the pool's threads spin waiting for the next call (or for each other) before
@@ -65,8 +106,7 @@ def threads() -> int:
 
 
 def _cache_dir() -> Path:
-    root = os.environ.get("JAXBODY_CACHE_DIR") or os.path.join(os.path.expanduser("~"), ".cache", "jaxbody")
-    path = Path(root) / "native"
+    path = cache_root() / "native"
     path.mkdir(parents=True, exist_ok=True)
     return path
 
@@ -152,8 +192,20 @@ def _handler(dtype) -> str:
     lib = ctypes.cdll.LoadLibrary(str(path))
     name = f"jaxbody_native_{path.stem}"
     jax.ffi.register_ffi_target(name, jax.ffi.pycapsule(lib.jaxbody_fd), platform="cpu")
+    lib.jaxbody_register.argtypes = (ctypes.c_int64, ctypes.c_void_p)
+    _handlers[name] = lib
     _loaded.append(lib)
     return name
+
+
+_handlers: dict = {}  # FFI target name -> its handler library (where programs are registered)
+
+
+def _program_key(library: Path) -> int:
+    """The key a traced call names a program by (:func:`_handler`'s registry): 60 bits of the
+    hash of its library's name, which holds the hash of its source, compiler and CPU — the same
+    in every process, unlike the program's address."""
+    return int(hashlib.sha256(library.stem.encode()).hexdigest()[:15], 16) or 1
 
 
 _loaded: list = []  # libraries stay loaded for the life of the process (XLA holds their addresses)
@@ -198,14 +250,19 @@ class Kernel:
             self.batched = self.batched_with(self.widths)
 
     def address(self, build: str) -> int:
-        """The compiled program of one of :data:`BUILDS`, built on its first call."""
+        """The key of the compiled program of one of :data:`BUILDS` (built and registered with the
+        handler on its first call); the traced call passes this key, not an address, so that
+        the compiled XLA program is the same in every process (JAX's persistent cache)."""
         with _lock:  # two threads tracing the same kernel build it once
             if build not in self._addresses:
                 source = self.source.replace("@VECTOR_BYTES@", BUILDS[build])
                 stem = self.mode.replace(":", "_")
-                lib = ctypes.cdll.LoadLibrary(str(build_library(source, f"{stem}_{build}")))
+                library = build_library(source, f"{stem}_{build}")
+                lib = ctypes.cdll.LoadLibrary(str(library))
                 _loaded.append(lib)
-                self._addresses[build] = ctypes.cast(lib.jaxbody_range, ctypes.c_void_p).value
+                key = _program_key(library)
+                _handlers[self.target].jaxbody_register(key, ctypes.cast(lib.jaxbody_range, ctypes.c_void_p).value)
+                self._addresses[build] = key
             return self._addresses[build]
 
     def call(self, *args, widths=None) -> list:

@@ -66,7 +66,7 @@ def residual_count(mode: str) -> int:
 # ----------------------------------------------------------------------------- code generation
 # Two translation units: the per-tree kernel (plain C++, quick to compile) and, once per dtype,
 # the XLA FFI handler (XLA's FFI headers take longer to parse than a small tree takes to
-# optimise). The handler receives the kernel's address as a call attribute.
+# optimise). The handler receives the kernel's registry key as a call attribute.
 #: The declarations both translation units share (``@T@``: the scalar type).
 COMMON_TEMPLATE = _template("common.h")
 _KERNEL = _template("kernel.cc")

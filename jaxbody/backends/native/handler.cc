@@ -4,6 +4,7 @@
 #include <condition_variable>
 #include <mutex>
 #include <thread>
+#include <unordered_map>
 #include <vector>
 #include "xla/ffi/api/ffi.h"
 @COMMON@
@@ -97,8 +98,37 @@ static Pool* pool() {
   return p;
 }
 
+// The compiled programs loaded in this process, by a key derived from their source's hash.
+// A traced call names its program by that key, not by its address: the address changes from
+// one process to the next, and a program in JAX's persistent compilation cache, made in
+// another process, must find this process's copy of the same program (and never another's).
+static std::mutex registry_m;
+static std::unordered_map<int64_t, Range>& registry() {
+  static auto* r = new std::unordered_map<int64_t, Range>();
+  return *r;
+}
+
+extern "C" void jaxbody_register(int64_t key, void* range) {
+  std::lock_guard<std::mutex> lock(registry_m);
+  registry()[key] = reinterpret_cast<Range>(range);
+}
+
+static Range lookup(int64_t key) {
+  // the thread's last program first: a solver loop calls one program many times
+  thread_local int64_t last_key = 0;
+  thread_local Range last = nullptr;
+  if (key == last_key && last) return last;
+  std::lock_guard<std::mutex> lock(registry_m);
+  auto it = registry().find(key);
+  if (it == registry().end()) return nullptr;
+  last_key = key, last = it->second;
+  return last;
+}
+
 static ffi::Error fd_impl(ffi::RemainingArgs args, ffi::RemainingRets rets, int64_t kernel, int64_t threads) {
-  const Range range = reinterpret_cast<Range>(kernel);
+  const Range range = lookup(kernel);
+  if (!range)
+    return ffi::Error(ffi::ErrorCode::kInvalidArgument, "jaxbody native kernel: program not loaded in this process");
   if (args.size() > MAX_IN || rets.size() > MAX_OUT || rets.size() == 0)
     return ffi::Error(ffi::ErrorCode::kInvalidArgument, "jaxbody native kernel: too many operands");
   Inputs in{};
