@@ -394,19 +394,15 @@ def _load_csv(path) -> Solution:
     )
 
 
-def ran_by(scene, solver, one_call: bool = False) -> dict:
+def ran_by(scene, solver) -> dict:
     """The ``kernel`` and ``solver`` fields of a solution of ``scene``: the forward-dynamics
-    kernel that ran (the scene's path when none runs directly; ``one_call``: the whole solve
-    ran as one native program) and the solver's name."""
+    kernel that ran (the scene's path when none runs directly) and the solver's name."""
     try:
         kernel = scene.direct_kernel() or scene.path
     except Exception:  # noqa: BLE001 (a description must not stop a solve)
         kernel = ""
     name = solver if isinstance(solver, str) else type(solver).__name__
-    kernel = str(kernel or "")
-    if one_call:
-        kernel = f"{kernel} (whole solve in one native call)"
-    return {"kernel": kernel, "solver": name}
+    return {"kernel": str(kernel or ""), "solver": name}
 
 
 def _tuples(x):

@@ -157,10 +157,7 @@ def simulate_scene(
                           native_solve_enabled())
     if correction is not None:
         sol = dataclasses.replace(sol, stats={**sol.stats, "v0_correction": correction})
-    # the one-call decision is static (types and shapes), so it is taken again here to say what ran
-    one_call = native_solve_enabled() and native_solve_applies(scene, y0, solver_obj, controller, saveat, adjoint,
-                                                               meter, event, dense, slots)
-    sol = dataclasses.replace(sol, **ran_by(scene, solver, one_call))
+    sol = dataclasses.replace(sol, **ran_by(scene, solver))
     if valid is not None:
         sol = mark_invalid(sol, valid, t0)
     if throw:
