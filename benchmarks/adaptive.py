@@ -19,6 +19,7 @@ interpolated log–log between the sweep's points, and the ratios are written to
 
 import json
 import os
+import argparse
 import pathlib
 import sys
 import tempfile
@@ -181,6 +182,10 @@ def run_scene(name, xml, q0, jax, jnp, diffrax, mujoco, jb):
 
 
 def main():
+    parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
+    parser.add_argument("--out", default=str(pathlib.Path(__file__).parent / "results"),
+                        help="folder of the record adaptive.md/.json (default benchmarks/results)")
+    args = parser.parse_args()
     import jax
     jax.config.update("jax_enable_x64", True)
     import diffrax
@@ -195,7 +200,7 @@ def main():
     results = {"pendulum": run_scene("pendulum", PENDULUM, np.array([np.pi / 2, 0.0]), jax, jnp, diffrax, mujoco, jb),
                "panda": run_scene("panda", panda, panda_q0, jax, jnp, diffrax, mujoco, jb)}
     stamp["load_average_end"] = _common.load_average()
-    out = pathlib.Path(__file__).parent / "results"
+    out = pathlib.Path(args.out)
     (out / "adaptive.json").write_text(json.dumps({"stamp": stamp, "results": results}, indent=1))
     md = ["# Native adaptive solves against diffrax's loop and MuJoCo's RK4", "", _common.stamp_markdown(stamp), "",
           "Final-state error (max abs over (q, v)) against scipy's DOP853 at rtol = atol = 1e-13 on MuJoCo's "

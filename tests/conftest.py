@@ -27,9 +27,13 @@ set_default_xla_flags()  # before the backend starts
 # kernel's C++ is built at -O0 likewise.
 # JAXBODY_TEST_XLA_OPTIMISATION=default runs the whole suite at the default level.
 OPTIMISATION_FLAG = "--xla_backend_optimization_level"
-REDUCED_OPTIMISATION = (os.environ.get("JAXBODY_TEST_XLA_OPTIMISATION") != "default"
-                        and OPTIMISATION_FLAG not in os.environ.get("XLA_FLAGS", ""))
-if REDUCED_OPTIMISATION:
+# (pytest-xdist workers inherit the controller's flags: JAXBODY_TEST_REDUCED_OPTIMISATION tells
+# them the level was lowered here and not by the caller)
+REDUCED_OPTIMISATION = os.environ.get("JAXBODY_TEST_XLA_OPTIMISATION") != "default" and (
+    os.environ.get("JAXBODY_TEST_REDUCED_OPTIMISATION") == "1"
+    or OPTIMISATION_FLAG not in os.environ.get("XLA_FLAGS", ""))
+if REDUCED_OPTIMISATION and os.environ.get("JAXBODY_TEST_REDUCED_OPTIMISATION") != "1":
+    os.environ["JAXBODY_TEST_REDUCED_OPTIMISATION"] = "1"
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {OPTIMISATION_FLAG}=0".strip()
     # the same for the native kernel's C++ (about 10x faster builds; see compiler_flags)
     os.environ.setdefault("JAXBODY_NATIVE_OPTIMISATION", "-O0")
@@ -69,6 +73,7 @@ def pytest_pyfunc_call(pyfuncitem):
     if not (REDUCED_OPTIMISATION and pyfuncitem.get_closest_marker("default_optimisation")):
         return None
     env = dict(os.environ, JAXBODY_TEST_XLA_OPTIMISATION="default", JAXBODY_NATIVE_OPTIMISATION="-O2")
+    env.pop("JAXBODY_TEST_REDUCED_OPTIMISATION", None)
     env["XLA_FLAGS"] = " ".join(f for f in env["XLA_FLAGS"].split() if not f.startswith(OPTIMISATION_FLAG))
     done = subprocess.run([sys.executable, "-m", "pytest", "-p", "no:cacheprovider", "-n", "0", "-q",
                            "-m", "", pyfuncitem.nodeid], cwd=REPO, env=env, capture_output=True,

@@ -77,7 +77,10 @@ def test_a_solution_says_which_kernel_and_solver_ran():
     sol = solved()
     assert sol.solver == "tsit5"
     assert sol.kernel in ("native", "unrolled", "vectorised", "planar")
-    assert sol.solver_reason == ""
+    # the default solver="auto" says why it chose tsit5; a solver asked for says so
+    assert "tsit5" in sol.solver_reason
+    asked = jb.simulate(pendulum(), jnp.array([0.3]), jnp.zeros(1), 0.05, solver="dopri5")
+    assert (asked.solver, asked.solver_reason) == ("dopri5", "asked for")
 
 
 def test_evaluate_inside_the_solved_interval_still_works():

@@ -126,7 +126,11 @@ def stiffness_estimate(scene, q) -> dict | None:
         return None
     if not is_concrete(*springs, *dampers) or not is_concrete(scene):
         return None
-    if not is_concrete(q):
+    if is_concrete(q) and (np.shape(q) != (scene.nq,) or not np.all(np.isfinite(np.asarray(q)))):
+        # a malformed initial state: the boundary checks that follow name it; the estimate
+        # reads the reference configuration instead
+        q = jnp.zeros((0,))
+    if not is_concrete(q) or np.shape(q) != (scene.nq,):
         # a traced initial state (under jit or vmap): the model's reference configuration instead,
         # the springs' stiffness and the mass matrix change little with the configuration
         q = getattr(scene.model, "qpos0", None)
