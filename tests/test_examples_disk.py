@@ -250,3 +250,22 @@ def test_gradient_of_final_heading_wrt_spin():
     h = 1e-5
     fd = (heading(5.0 + h) - heading(5.0 - h)) / (2 * h)
     np.testing.assert_allclose(g, fd, rtol=1e-5)
+
+
+def test_rolling_disk_in_float32_follows_float64():
+    """The rolling disk in float32 (its parameters and state): it integrates through the Maggi
+    layer (tangents and derivatives in the state's dtype, the initial check at float32's
+    resolution) and stays within float32 tolerances of float64."""
+    th, rho = 1.2, 0.3
+    q0 = np.array([0.0, 0.0, 0.0, th, 0.0])
+    v0 = np.array([0.3, -0.5, 6.0, -rho * 6.0, -rho * np.sin(th) * 0.3])
+
+    def run(dtype, tol):
+        system = dk.rolling_disk(*(jnp.asarray(x, dtype) for x in (2.0, 0.3, 9.81)))
+        return jb.simulate(jb.scene(system), jnp.asarray(q0, dtype), jnp.asarray(v0, dtype), jnp.asarray(1.0, dtype),
+                           n_save=3, rtol=tol, atol=tol)
+
+    s32, s64 = run(jnp.float32, 1e-5), run(jnp.float64, 1e-10)
+    assert s32.q.dtype == jnp.float32 and bool(s32.success)
+    np.testing.assert_allclose(np.asarray(s32.q_final, np.float64), np.asarray(s64.q_final), atol=1e-3)
+    np.testing.assert_allclose(np.asarray(s32.v_final, np.float64), np.asarray(s64.v_final), atol=1e-3)

@@ -256,7 +256,9 @@ class ConstrainedSystem(eqx.Module):
         eps_dot = jax.jvp(
             lambda tt, qq, xx: self.characteristics(tt, qq, xx),
             (t, q, x),
-            (jnp.ones_like(t), self.base.qdot(q, x), xdot),
+            # tangents in the primals' dtypes: a float32 state of a system with float64
+            # parameters computes ẋ in float64, and jvp needs them equal
+            (jnp.ones_like(t), self.base.qdot(q, x).astype(q.dtype), xdot.astype(x.dtype)),
         )[1]
         # result codes, not exceptions: inside a solver loop under vmap raising would stop the whole
         # batch; the negated test also flags a NaN ratio; a non-finite ẋ blames AᵀDA only if [E; G] was regular

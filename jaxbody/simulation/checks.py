@@ -186,6 +186,12 @@ Q0_ATOL = 1e-6
 V0_ATOL = 1e-9  # admissible residual of v0, scaled by max(1, max|v0|) (as jaxbody.maggi.initial_state)
 
 
+def admissible(atol: float, dtype) -> float:
+    """``atol`` or, where the dtype cannot resolve it, 64 units of its rounding: a float32 state
+    on its constraints has residuals of a few times 1e-7, far above float64's tolerances."""
+    return max(atol, 64 * float(jnp.finfo(dtype).eps))
+
+
 def concrete_constraint_check(cs, t0, q0, v0, project_initial):
     """``(q0, v0, correction)``: the initial state when it satisfies the constraints ``cs`` at
     ``t0``, else its projection (``project_initial``: the positions onto the holonomic rows, then
@@ -195,19 +201,20 @@ def concrete_constraint_check(cs, t0, q0, v0, project_initial):
     # the admissible case (the usual one) is decided by one compiled residual; otherwise
     # jaxbody.maggi.initial_state names the rows at fault or projects
     phi, f = (np.asarray(x) for x in _residual(cs, t0, q0, v0))
-    off = np.flatnonzero(np.abs(phi) > Q0_ATOL)
+    q_atol, v_atol = admissible(Q0_ATOL, q0.dtype), admissible(V0_ATOL, v0.dtype)
+    off = np.flatnonzero(np.abs(phi) > q_atol)
     if off.size and not project_initial:
         names = [cs.constraint_names[i] for i in off]
         raise ValueError(
             f"simulate: q0: initial positions violate the constraints {names} (position residuals "
-            f"{[float(phi[i]) for i in off]}, admissible {Q0_ATOL:g}); start on the constraints, e.g. from "
+            f"{[float(phi[i]) for i in off]}, admissible {q_atol:g}); start on the constraints, e.g. from "
             "jaxbody.maggi.project_positions(constrained_system, q0), or pass project_initial=True"
         )
     scale = max(1.0, float(np.max(np.abs(np.asarray(v0)))))
-    if not off.size and np.all(np.abs(f) <= V0_ATOL * scale):
+    if not off.size and np.all(np.abs(f) <= v_atol * scale):
         return q0, v0, (jnp.zeros_like(v0) if project_initial else None)
     try:
-        q0p, v0p, correction = maggi.initial_state(cs, q0, v0, t0, project_initial=project_initial, atol=V0_ATOL)
+        q0p, v0p, correction = maggi.initial_state(cs, q0, v0, t0, project_initial=project_initial, atol=v_atol)
     except ValueError as err:
         raise ValueError(f"simulate: v0: {err}") from None
     # positions within the check's tolerance stay as given (a continued run's drift is kept)
@@ -224,10 +231,11 @@ def _residual(cs, t, q, v):
 def traced_position_check(cs, t0, q0):
     """``(bad, message)``: the initial positions' check of :func:`concrete_constraint_check` on
     traced values (the holonomic rows' residuals ``φ(t0, q0)`` within :data:`Q0_ATOL`)."""
-    bad = jnp.any(jnp.abs(cs.position_residual(t0, q0)) > Q0_ATOL)
+    q_atol = admissible(Q0_ATOL, q0.dtype)
+    bad = jnp.any(jnp.abs(cs.position_residual(t0, q0)) > q_atol)
     msg = (
         f"simulate: q0: initial positions violate the constraints {list(cs.constraint_names)} (a position residual "
-        f"exceeds {Q0_ATOL:g}); start on the constraints, e.g. from jaxbody.maggi.project_positions"
+        f"exceeds {q_atol:g}); start on the constraints, e.g. from jaxbody.maggi.project_positions"
     )
     return bad, msg
 
@@ -237,9 +245,10 @@ def traced_constraint_check(cs, t0, q0, v0):
     f = cs.constraint_residual(t0, q0, v0)
     # relative to the speeds, as the eager check: fast motions carry larger rounding residuals
     scale = jnp.maximum(1.0, jnp.max(jnp.abs(v0)))
-    bad = jnp.any(jnp.abs(f) > V0_ATOL * scale)
+    v_atol = admissible(V0_ATOL, v0.dtype)
+    bad = jnp.any(jnp.abs(f) > v_atol * scale)
     msg = (
         f"simulate: v0: initial velocities violate the constraints {list(cs.constraint_names)} (a residual "
-        f"exceeds {V0_ATOL:g}·max(1, max|v0|)); give admissible rates or pass project_initial=True"
+        f"exceeds {v_atol:g}·max(1, max|v0|)); give admissible rates or pass project_initial=True"
     )
     return bad, msg

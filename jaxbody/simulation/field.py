@@ -32,7 +32,9 @@ class VectorField(eqx.Module):
         scene, valid = args
         q, v = y[0], y[1]
         a, powers, _ = scene.evaluate(t, q, v)
-        out = (scene.qdot(q, v), a)
+        # in the state's dtypes: a float32 state of a system whose parameters are float64 would
+        # otherwise give float64 derivatives, which the solver's float32 buffers cannot hold
+        out = (scene.qdot(q, v).astype(q.dtype), a.astype(v.dtype))
         if len(y) == 3:
             if self.slots:
                 slots = np.asarray(self.slots, dtype=np.int32)
