@@ -378,3 +378,21 @@ def markdown_table(headers, rows) -> str:
     lines = ["| " + " | ".join(headers) + " |", "|" + "|".join("---" for _ in headers) + "|"]
     lines += ["| " + " | ".join(cell(x) for x in r) + " |" for r in rows]
     return "\n".join(lines)
+
+
+#: The papers' Example 1 (masses 1, 0.6 kg; centres 0.4, 0.3 m; L1 = 0.8 m; central inertias
+#: 0.05, 0.02 kg·m²) as hinges about y (MuJoCo's joint angles are the relative ones), with
+#: contacts, limits and actuation off: the scene the accuracy benchmarks share with MuJoCo.
+DOUBLE_PENDULUM_MJCF = """<mujoco model="double_pendulum">
+  <option gravity="0 0 -9.81" timestep="0.001"><flag contact="disable" limit="disable" actuation="disable"/></option>
+  <worldbody>
+    <body name="link1">
+      <joint name="alpha1" type="hinge" axis="0 1 0"/>
+      <inertial pos="0 0 -0.4" mass="1.0" diaginertia="0.05 0.05 0.05"/>
+      <body name="link2" pos="0 0 -0.8">
+        <joint name="alpha2" type="hinge" axis="0 1 0"/>
+        <inertial pos="0 0 -0.3" mass="0.6" diaginertia="0.02 0.02 0.02"/>
+      </body>
+    </body>
+  </worldbody>
+</mujoco>"""

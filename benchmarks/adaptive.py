@@ -32,19 +32,7 @@ import _common  # noqa: E402
 
 # the papers' Example 1 (masses 1, 0.6 kg; centres 0.4, 0.3 m; L1 = 0.8 m; central inertias 0.05,
 # 0.02 kg·m²) as hinges about y
-PENDULUM = """<mujoco model="double_pendulum">
-  <option gravity="0 0 -9.81" timestep="0.001"><flag contact="disable" limit="disable" actuation="disable"/></option>
-  <worldbody>
-    <body name="link1">
-      <joint name="alpha1" type="hinge" axis="0 1 0"/>
-      <inertial pos="0 0 -0.4" mass="1.0" diaginertia="0.05 0.05 0.05"/>
-      <body name="link2" pos="0 0 -0.8">
-        <joint name="alpha2" type="hinge" axis="0 1 0"/>
-        <inertial pos="0 0 -0.3" mass="0.6" diaginertia="0.02 0.02 0.02"/>
-      </body>
-    </body>
-  </worldbody>
-</mujoco>"""
+PENDULUM = _common.DOUBLE_PENDULUM_MJCF
 #: scene -> (end time, target error, tolerances of each method, MuJoCo timesteps)
 SCENES = {
     "pendulum": (10.0, 1e-8, {"dopri8": (1e-11, 3e-12, 1e-12, 1e-13), "tsit5": (1e-12, 1e-13)},

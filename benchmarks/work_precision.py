@@ -48,6 +48,7 @@ import warnings
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 from _common import (  # noqa: E402
+    DOUBLE_PENDULUM_MJCF,
     RESULTS,
     load_average,
     markdown_table,
@@ -88,19 +89,7 @@ MJ_INTEGRATORS = {"mj_euler": "EULER", "mj_implicitfast": "IMPLICITFAST", "mj_rk
 def pendulum_mjcf():
     """Example 1's double pendulum (masses 1, 0.6 kg; centres 0.4, 0.3 m; L1 = 0.8 m; central
     inertias 0.05, 0.02 kg·m²) as hinges about y: MuJoCo's joint angles are the relative ones."""
-    return """<mujoco model="double_pendulum">
-  <option gravity="0 0 -9.81" timestep="0.001"><flag contact="disable" limit="disable" actuation="disable"/></option>
-  <worldbody>
-    <body name="link1">
-      <joint name="alpha1" type="hinge" axis="0 1 0"/>
-      <inertial pos="0 0 -0.4" mass="1.0" diaginertia="0.05 0.05 0.05"/>
-      <body name="link2" pos="0 0 -0.8">
-        <joint name="alpha2" type="hinge" axis="0 1 0"/>
-        <inertial pos="0 0 -0.3" mass="0.6" diaginertia="0.02 0.02 0.02"/>
-      </body>
-    </body>
-  </worldbody>
-</mujoco>"""
+    return DOUBLE_PENDULUM_MJCF
 
 
 def pendulum_closed_form(t, y):

@@ -338,11 +338,13 @@ def test_failed_run_keeps_what_it_finished(tmp_path, cli):
 def test_interrupted_run_keeps_what_it_finished(tmp_path):
     npz = tmp_path / "long.npz"
     proc = run_cli("simulate", "double_pendulum", "--t1", "20000", "--saves", "200001",
-                   "--chunks", "2000", "--rtol", "1e-12", "--atol", "1e-12", "--out", npz,
+                   "--chunks", "2000", "--rtol", "1e-8", "--atol", "1e-8", "--out", npz,
                    "--no-progress", cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                    # as from a terminal: a shell without job control starts background
                    # commands with SIGINT ignored, which the child would inherit
                    preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    # the interrupt is taken between chunks: loose tolerances keep each chunk (10 s of a chaotic
+    # pendulum) short, also in the test suite's unoptimised builds
     try:
         deadline = time.monotonic() + 240
         while not npz.exists() and proc.poll() is None and time.monotonic() < deadline:
