@@ -92,6 +92,8 @@ def warn_below_resolution(dtype, rtol, atol) -> None:
         if tol is None or not is_concrete(tol):
             continue
         tol = float(np.min(np.asarray(tol)))
+        if tol == 0.0:
+            continue  # a purely relative (atol = 0) or absolute (rtol = 0) control, asked for on purpose
         if tol < RESOLUTION_FACTOR * eps:
             warnings.warn(
                 f"simulate: {name}={tol:g} is below {RESOLUTION_FACTOR:g} x the resolution of {jnp.dtype(dtype).name} "
