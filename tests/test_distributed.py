@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 
 import jaxbody as jb
-from jaxbody._xla import default_xla_flags
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 SCRIPT = REPO / "scripts" / "distributed_batch.py"
@@ -52,7 +51,7 @@ def test_two_processes_equal_one(tmp_path):
     model_path = tmp_path / "chain.xml"
     model_path.write_text(CHAIN)
     n, options = 5, ["--n", "5", "--t1", "0.05", "--n-save", "3", "--solver", "rk4", "--dt0", "0.01"]
-    env = dict(os.environ, XLA_FLAGS=default_xla_flags())
+    env = dict(os.environ)  # the suite's XLA flags (the reduced optimisation level: tests/conftest.py)
     env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
     port = _free_port()
     procs = [subprocess.Popen([sys.executable, str(SCRIPT), f"localhost:{port}", "2", str(i), "--model", str(model_path),

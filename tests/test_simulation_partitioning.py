@@ -143,14 +143,15 @@ def test_pendulum_through_the_horizontal_repartitions_and_matches_the_joint_angl
     assert n == int(np.floor(ref.sol(T_END)[0] / (np.pi / 2) + np.arctan(0.1) / (np.pi / 2)))
 
 
-@pytest.mark.default_optimisation  # the two runs agree bit for bit up to the stop
 def test_without_repartitioning_the_run_stops_with_the_degradation_code(scene_run):
     scene = jb.scene(bob_model(), constraints=pendulum(repartition=False))
     sol = jb.simulate(scene, Q0, jnp.array([W0 * L, 0.0]), T_END, throw=False, **KW)
     assert sol.result == jb.RESULTS.partition_degraded
     assert int(sol.stats["num_repartitions"]) == 0
-    # it stops where the other run changed partition: the first step that ended degraded
-    assert float(sol.t_final) == pytest.approx(float(scene_run.repartition_times[0]), abs=1e-12)
+    # it stops where the other run changed partition: the first step that ended degraded. The
+    # two runs are different programs, so their steps agree to rounding, not bit for bit (about
+    # 1e-9 s here); a stop one step earlier or later would be a step, milliseconds, away
+    assert float(sol.t_final) == pytest.approx(float(scene_run.repartition_times[0]), abs=1e-6)
     q, v = np.asarray(sol.q_final), np.asarray(sol.v_final)
     assert abs(q[1]) < 0.1 * abs(q[0])  # near the horizontal, |z| < 0.1 |x|
     # what was integrated before is kept and right

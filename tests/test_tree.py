@@ -36,7 +36,7 @@ def dense_reference(parent):
     return anc
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=15, deadline=None)
 @given(parent_arrays())
 def test_sums_match_dense_walks(parent):
     tree = jb.BodyTree(parent)

@@ -40,6 +40,7 @@ Newton–Euler passes (:func:`inverse_dynamics`) and its hand-derived adjoint
 
 import functools
 from collections.abc import Sequence
+from typing import no_type_check
 
 import jax
 import jax.numpy as jnp
@@ -77,14 +78,21 @@ RK4_B = (1 / 6, 1 / 3, 1 / 3, 1 / 6)
 # ----------------------------------------------------------------------------- scalar algebra
 # A "scalar" is a JAX array of shape () (or (batch,) under vmap) or the Python float 0.0/1.0,
 # a structural constant known at trace time that the helpers fold away.
+# The helpers below run once per scalar operation of a generated program (hundreds of
+# thousands of calls for one native kernel): ``no_type_check`` exempts them from the runtime
+# type checks the test suite instruments the package with (jaxtyping's import hook honours
+# it), which tripled the code generator's time; they carry no annotations worth checking.
+@no_type_check
 def _is0(a) -> bool:
     return type(a) is float and a == 0.0  # not np.float64 (a float subclass): only constants
 
 
+@no_type_check
 def _is1(a) -> bool:
     return type(a) is float and a == 1.0
 
 
+@no_type_check
 def add(a, b):
     """``a + b`` with the structural zero ``0.0`` folded away."""
     if _is0(a):
@@ -94,6 +102,7 @@ def add(a, b):
     return a + b
 
 
+@no_type_check
 def _sub(a, b):
     if _is0(b):
         return a
@@ -102,6 +111,7 @@ def _sub(a, b):
     return a - b
 
 
+@no_type_check
 def _mul(a, b):
     if _is0(a) or _is0(b):
         return 0.0
@@ -112,6 +122,7 @@ def _mul(a, b):
     return a * b
 
 
+@no_type_check
 def _sum(*terms):
     out = 0.0
     for t in terms:
@@ -122,22 +133,27 @@ def _sum(*terms):
 ZERO3 = (0.0, 0.0, 0.0)
 
 
+@no_type_check
 def _vadd(a, b):
     return tuple(add(x, y) for x, y in zip(a, b))
 
 
+@no_type_check
 def _vsub(a, b):
     return tuple(_sub(x, y) for x, y in zip(a, b))
 
 
+@no_type_check
 def _vscale(s, a):
     return tuple(_mul(s, x) for x in a)
 
 
+@no_type_check
 def _dot(a, b):
     return _sum(*(_mul(x, y) for x, y in zip(a, b)))
 
 
+@no_type_check
 def _cross(a, b):
     return (
         _sub(_mul(a[1], b[2]), _mul(a[2], b[1])),
@@ -146,19 +162,23 @@ def _cross(a, b):
     )
 
 
+@no_type_check
 def _is_zero3(a) -> bool:
     return all(_is0(x) for x in a)
 
 
+@no_type_check
 def _matvec(R, x):
     return tuple(_dot(row, x) for row in R)
 
 
+@no_type_check
 def _matmul(A, B):
     cols = tuple(zip(*B))
     return tuple(tuple(_dot(row, col) for col in cols) for row in A)
 
 
+@no_type_check
 def _column(R, k):
     return (R[0][k], R[1][k], R[2][k])
 
@@ -176,11 +196,13 @@ def _quat_matrix(w, x, y, z):
     )
 
 
+@no_type_check
 def _cos(a):
     # symbolic scalars (the native kernel's tracer, jaxbody.backends.native.symbolic) carry their own
     return a.cos() if getattr(a, "symbolic", False) else jnp.cos(a)
 
 
+@no_type_check
 def _sin(a):
     return a.sin() if getattr(a, "symbolic", False) else jnp.sin(a)
 
@@ -213,18 +235,21 @@ def _rows3(x, i) -> tuple:
 
 # ----------------------------------------------------------------------------- spatial algebra
 # motion (angular ω, linear v about c0); force (moment about c0 L, force p)
+@no_type_check
 def _motion_cross(V, S):
     """``V × S`` of two motions (``Ṡ`` of a DoF carried by a frame moving with ``V``)."""
     (w, v), (ws, vs) = V, S
     return _cross(w, ws), _vadd(_cross(w, vs), _cross(v, ws))
 
 
+@no_type_check
 def _force_cross(V, F):
     """``V ×* F``: rate of change of a momentum ``F`` carried by the motion ``V``."""
     (w, v), (L, p) = V, F
     return _vadd(_cross(w, L), _cross(v, p)), _cross(w, p)
 
 
+@no_type_check
 def _inertia_apply(I, S):
     """Spatial inertia ``(m, h, K)`` about ``c0`` applied to a motion: ``(K ω + h × v, m v + ω × h)``."""
     m, h, K = I
@@ -234,6 +259,7 @@ def _inertia_apply(I, S):
     return L, p
 
 
+@no_type_check
 def _sym_apply(K, w):
     """Symmetric 3×3 stored as (xx, yy, zz, xy, xz, yz) applied to ``w``."""
     xx, yy, zz, xy, xz, yz = K
@@ -244,6 +270,7 @@ def _sym_apply(K, w):
     )
 
 
+@no_type_check
 def _spatial_dot(S, F):
     return add(_dot(S[0], F[0]), _dot(S[1], F[1]))
 

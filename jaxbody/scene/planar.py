@@ -18,7 +18,7 @@ from .._types import Array, Float
 from ..effects import EffectContext
 from ..linalg import solve_spd
 from ..planar import augmented_bodies, bias_forces, body_positions, kinetic_energy, mass_matrix
-from .base import ModelScene
+from .base import ModelScene, compiled_when_eager
 
 __all__ = ["PlanarScene"]
 
@@ -82,6 +82,7 @@ class PlanarScene(ModelScene):
         raise ValueError("body loads need the spatial path")
 
     # ------------------------------------------------------------------ protocol
+    @compiled_when_eager
     def evaluate(self, t, q, v, tau=None):
         ctx = self.context(t, q, v)
         total, powers = self.effect_forces(ctx, tau)
@@ -97,9 +98,11 @@ class PlanarScene(ModelScene):
         a = self._signs(v.dtype) * (acc_abs - acc_parent)
         return a, tuple(powers), None
 
+    @compiled_when_eager
     def kinetic_energy(self, q, v) -> Float[Array, ""]:
         theta, omega = self.context(0.0, q, v).angles
         return kinetic_energy(self.planar, theta, omega)
 
+    @compiled_when_eager
     def total_energy(self, q: Float[Array, " nq"], v: Float[Array, " nv"]) -> Float[Array, ""]:
         return self.kinetic_energy(q, v) + self.potential_energy(q)

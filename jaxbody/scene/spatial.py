@@ -16,7 +16,7 @@ from ..effects import Actuation, EffectContext, Gravity, JointDampers, JointSpri
 from ..backends import acceleration, resolve_kernel
 from ..kernels import bias_forces, body_wrench_force, kinetic_energy, mass_matrix, uniform_field_force
 from ..linalg import solve_spd
-from .base import ModelScene
+from .base import ModelScene, compiled_when_eager
 
 __all__ = ["SpatialScene"]
 
@@ -75,6 +75,7 @@ class SpatialScene(ModelScene):
         return body_wrench_force(self.system, ctx.kinematics, wrenches)
 
     # ------------------------------------------------------------------ protocol
+    @compiled_when_eager
     def evaluate(self, t, q, v, tau=None):
         if self.is_direct():
             return self._evaluate_direct(t, q, v, tau)
@@ -139,12 +140,14 @@ class SpatialScene(ModelScene):
             potential = potential + springs[0].potential_energy(EffectContext(self, jnp.zeros((), v.dtype), q, v))
         return kinetic, potential
 
+    @compiled_when_eager
     def kinetic_energy(self, q, v) -> Float[Array, ""]:
         fast = self._kernel_energies(q, v)
         if fast is not None:
             return fast[0]
         return kinetic_energy(self.system, compute_data(self.system, q, v))
 
+    @compiled_when_eager
     def total_energy(self, q: Float[Array, " nq"], v: Float[Array, " nv"]) -> Float[Array, ""]:
         # the energies of a straight-line kernel come from the same program as its dynamics,
         # so a batch of them is one native call instead of the vectorised kinematics

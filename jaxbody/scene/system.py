@@ -14,7 +14,7 @@ import jax.numpy as jnp
 from .._types import Array, Float
 from ..effects import EffectContext
 from ..maggi import ConstrainedSystem
-from .base import Scene
+from .base import Scene, compiled_when_eager
 
 __all__ = ["SystemScene", "own_constraints"]
 
@@ -70,9 +70,11 @@ class SystemScene(Scene):
     def body_wrench_force(self, ctx: EffectContext, wrenches):
         raise ValueError("body loads need the spatial path")
 
+    @compiled_when_eager
     def qdot(self, q: Float[Array, " nq"], v: Float[Array, " nv"]) -> Float[Array, " nq"]:
         return self.system.qdot(q, v)
 
+    @compiled_when_eager
     def evaluate(self, t, q, v, tau=None):
         ctx = self.context(t, q, v)
         forces = [e.generalized_force(ctx) for e in self.effects]
@@ -92,8 +94,10 @@ class SystemScene(Scene):
             powers = tuple(jnp.dot(f, v) for e, f in zip(self.effects, forces) if not e.conservative)
         return a, powers, reaction
 
+    @compiled_when_eager
     def kinetic_energy(self, q, v) -> Float[Array, ""]:
         raise ValueError("kinetic_energy: this system has no separate kinetic energy")
 
+    @compiled_when_eager
     def total_energy(self, q: Float[Array, " nq"], v: Float[Array, " nv"]) -> Float[Array, ""]:
         return self.system.total_energy(q, v)

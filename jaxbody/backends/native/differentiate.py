@@ -6,9 +6,14 @@ reverse-mode pass the adjoint of every value that depends on the state, last ope
 trees, :func:`inverse_dynamics_block`) is reversed by its own rule.
 """
 
+from typing import no_type_check
+
 from .. import scalar
 from .symbolic import Emitter, Sym, where_negative
 
+# run once per operation of the program they differentiate (``no_type_check``: exempt from the
+# test suite's runtime type checks, as the scalar helpers of jaxbody.backends.scalar are)
+@no_type_check
 def _is_zero(x) -> bool:
     return not isinstance(x, Sym) and x == 0
 
@@ -27,6 +32,7 @@ def active_values(ops: list, seeds: set) -> set:
     return active
 
 
+@no_type_check
 def tangent_program(ops: list, seeds: dict) -> dict:
     """Forward mode: the tangent of every value, emitted as code (zeros folded away).
 
@@ -100,6 +106,7 @@ def inverse_dynamics_block(em: Emitter, model, q: list, v: list, acceleration: l
     return out
 
 
+@no_type_check
 def adjoint_program(ops: list, active: set, seeds: list) -> dict:
     """Reverse mode: the adjoint of every active value, emitted as code, last operation first.
 

@@ -8,6 +8,8 @@ kernel and repeated expressions are shared. The model's parameters are inputs
 (:class:`SymbolicModel`), so one compilation serves every parameter value.
 """
 
+from typing import no_type_check
+
 import jax.numpy as jnp
 import numpy as np
 
@@ -15,6 +17,9 @@ from ..._types import Array, Float
 from ...model import Model
 
 # ----------------------------------------------------------------------------- symbolic scalars
+# Every operation of a generated program goes through these (``no_type_check``: exempt from
+# the test suite's runtime type checks, as the scalar helpers of jaxbody.backends.scalar are)
+@no_type_check
 class Emitter:
     """Collects the lines of one generated function and shares repeated expressions.
 
@@ -52,17 +57,20 @@ class Emitter:
         return pair
 
 
+@no_type_check
 def _lit(x) -> str:
     if isinstance(x, Sym):
         return x.name
     return f"T({float(x)!r})"
 
 
+@no_type_check
 def _value(x) -> str:
     """``x`` as a vector expression (a constant broadcast to every lane)."""
     return x.name if isinstance(x, Sym) else f"(U{{}} + T({float(x)!r}))"
 
 
+@no_type_check
 class Sym:
     """A scalar of the generated program: a C++ name; arithmetic emits code.
 
@@ -142,6 +150,7 @@ class Sym:
         return self.em.emit(f"{self.name} /* constant */", "stop", (self,))
 
 
+@no_type_check
 def with_derivative(value, derivative):
     """``value``, whose derivative the derivative programs take to be ``derivative``'s: the
     computation of ``derivative``'s own value is left to the compiler to drop where nothing else
@@ -151,6 +160,7 @@ def with_derivative(value, derivative):
     return derivative.em.emit(f"{_value(value)} /* derivative: {derivative.name} */", "attach", (value, derivative))
 
 
+@no_type_check
 def stop_derivative(x):
     """``x`` with no derivative in the generated derivative programs (constants pass through)."""
     return x.stop() if isinstance(x, Sym) else x
@@ -180,6 +190,7 @@ def unflatten_parameters(target, tree, joints, flat, reshape) -> None:
         offset += size
 
 
+@no_type_check
 def where_negative(c, a, b):
     """``a`` where ``c < 0``, else ``b``: on symbols, JAX scalars or constants."""
     if isinstance(c, Sym):
@@ -191,11 +202,13 @@ def where_negative(c, a, b):
     return jnp.where(c < 0, a, b)
 
 
+@no_type_check
 def sym_sqrt(x):
     """``√x`` on a symbol (emitted C++) or a JAX scalar."""
     return x.sqrt() if isinstance(x, Sym) else jnp.sqrt(x)
 
 
+@no_type_check
 def sym_atan2(y, x):
     """``atan2(y, x)`` on symbols (emitted C++) or JAX scalars."""
     return y.atan2(x) if isinstance(y, Sym) else jnp.arctan2(y, x)
