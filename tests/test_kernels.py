@@ -22,23 +22,22 @@ def test_kernels_on_data_equal_the_convenience_functions():
     data = jax.jit(jb.compute_data)(model, q, v)
     assert isinstance(data, jb.Data) and isinstance(data, jb.kinematics.Kinematics)
     K = jb.kernels
-    pairs = [
-        (K.mass_matrix(model, data), jb.mass_matrix(model, q)),
-        (K.bias_forces(model, data), jb.bias_forces(model, q, v)),
-        (K.inverse_dynamics(model, data, a, external=ext), jb.inverse_dynamics(model, q, v, a, external=ext)),
-        (K.forward_dynamics(model, data, tau, external=ext), jb.forward_dynamics(model, q, v, tau, external=ext)),
-        (K.joint_reactions(model, data, a), jb.joint_reactions(model, q, v, a)),
-        (K.kinetic_energy(model, data), jb.kinetic_energy(model, q, v)),
-        (K.potential_energy(model, data), jb.potential_energy(model, q)),
-        (K.passive_forces(model, data), jb.passive_forces(model, q, v)),
-        (data.augmented, jb.augmented_bodies(model, q)),
-    ]
+
+    # the kernels as they are meant to run: inside one compiled program (a vector field, a loop)
+    @jax.jit
+    def kernels(data, a, tau, ext):
+        return (K.mass_matrix(model, data), K.bias_forces(model, data), K.inverse_dynamics(model, data, a, external=ext),
+                K.forward_dynamics(model, data, tau, external=ext), K.joint_reactions(model, data, a),
+                K.kinetic_energy(model, data), K.potential_energy(model, data), K.passive_forces(model, data))
+
+    refs = (jb.mass_matrix(model, q), jb.bias_forces(model, q, v), jb.inverse_dynamics(model, q, v, a, external=ext),
+            jb.forward_dynamics(model, q, v, tau, external=ext), jb.joint_reactions(model, q, v, a),
+            jb.kinetic_energy(model, q, v), jb.potential_energy(model, q), jb.passive_forces(model, q, v))
+    pairs = [*zip(kernels(data, a, tau, ext), refs), (data.augmented, jb.augmented_bodies(model, q))]
     for got, ref in pairs:
         jax.tree.map(lambda x, y: np.testing.assert_allclose(x, y, rtol=1e-13, atol=1e-13), got, ref)
     # data holds the body velocities: T = ½ vᵀ M v from them
-    np.testing.assert_allclose(
-        K.kinetic_energy(model, data), 0.5 * v @ K.mass_matrix(model, data) @ v, rtol=1e-12
-    )
+    np.testing.assert_allclose(pairs[5][0], 0.5 * v @ pairs[0][0] @ v, rtol=1e-12)
 
 
 def test_unchecked_kernels_keep_a_batch_alive():
@@ -58,7 +57,7 @@ def test_unchecked_kernels_keep_a_batch_alive():
     np.testing.assert_allclose(acc[0], jb.forward_dynamics(model, q[0], v[0], include_passive=True), rtol=1e-12)
     assert bool(jnp.all(jnp.isfinite(M[2])))
     planar = jb.examples.double_pendulum()
-    pacc = jax.vmap(lambda q: planar.acceleration(0.0, q, jnp.zeros(2), None))(q[:, :2])
+    pacc = jax.jit(jax.vmap(lambda q: planar.acceleration(0.0, q, jnp.zeros(2), None)))(q[:, :2])
     assert bool(jnp.all(jnp.isnan(pacc[1]))) and bool(jnp.all(jnp.isfinite(pacc[0])))
 
 

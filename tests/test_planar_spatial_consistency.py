@@ -62,8 +62,9 @@ def test_planar_and_spatial_paths_agree(case):
     q_abs = jnp.asarray(np.concatenate([rng.standard_normal(nb), rng.uniform(-np.pi, np.pi, n)]))
     v_abs = jnp.asarray(rng.standard_normal(nb + n))
     tau = jnp.asarray(rng.standard_normal(nb + n))  # (F_x, F_y, M_1..M_n): same layout both ways
-    q_rel = jb.planar.absolute_to_relative(planar, q_abs)
-    v_rel = jb.planar.absolute_to_relative(planar, v_abs)
+    # every function compiled (called eagerly each would compile its operations one by one)
+    to_relative = jax.jit(jb.planar.absolute_to_relative)
+    q_rel, v_rel = to_relative(planar, q_abs), to_relative(planar, v_abs)
 
     M_planar = jax.jit(jb.planar.joint_mass_matrix)(planar, q_abs)
     M_spatial = jax.jit(jb.mass_matrix)(model, q_rel)
@@ -75,14 +76,14 @@ def test_planar_and_spatial_paths_agree(case):
 
     a_abs = jax.jit(jb.planar.forward_dynamics)(planar, q_abs, v_abs, tau)
     a_rel = jax.jit(jb.forward_dynamics)(model, q_rel, v_rel, tau)
-    np.testing.assert_allclose(jb.planar.relative_to_absolute(planar, a_rel), a_abs, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(jax.jit(jb.planar.relative_to_absolute)(planar, a_rel), a_abs, rtol=1e-10, atol=1e-10)
 
-    E_planar = jb.planar.total_energy(planar, q_abs, v_abs)
+    E_planar = jax.jit(jb.planar.total_energy)(planar, q_abs, v_abs)
     E_spatial = jb.kinetic_energy(model, q_rel, v_rel) + jb.potential_energy(model, q_rel)
     np.testing.assert_allclose(E_spatial, E_planar, rtol=1e-12)
 
     # joint forces of Statement 1 (eq. 1), planar vs spatial (world x, y components)
-    F_planar = jb.planar.joint_reactions(planar, q_abs, v_abs, a_abs)[0]
+    F_planar = jax.jit(jb.planar.joint_reactions)(planar, q_abs, v_abs, a_abs)[0]
     F_spatial, M_spatial_k = jax.jit(jb.joint_reactions)(model, q_rel, v_rel, a_rel)
     bodies = np.arange(n) + (1 if spec["base"] else 0)
     np.testing.assert_allclose(F_spatial[bodies, :2], F_planar, rtol=1e-10, atol=1e-10)
@@ -121,33 +122,37 @@ def test_from_model_gives_the_same_dynamics(parent):
     q = model.qpos0 + jnp.asarray(rng.uniform(-2, 2, model.nq))
     v = jnp.asarray(rng.standard_normal(model.nv))
     tau = jnp.asarray(rng.standard_normal(model.nv))
-    theta = jb.planar.relative_to_absolute(system, q - model.qpos0)
-    omega = jb.planar.relative_to_absolute(system, v)
-    np.testing.assert_allclose(
-        jb.planar.joint_mass_matrix(system, theta), jb.mass_matrix(model, q), rtol=1e-12, atol=1e-13
-    )
-    np.testing.assert_allclose(
-        jb.planar.joint_bias_forces(system, theta, omega), jb.bias_forces(model, q, v), rtol=1e-11, atol=1e-12
-    )
-    a_abs = jb.planar.forward_dynamics(system, theta, omega, tau)
-    np.testing.assert_allclose(
-        jb.planar.absolute_to_relative(system, a_abs), jb.forward_dynamics(model, q, v, tau), rtol=1e-10, atol=1e-11
-    )
+    q2 = q + 0.3
+    P = _planar_quantities(system, q - model.qpos0, v, tau, q2 - model.qpos0)
+    np.testing.assert_allclose(P["mass_matrix"], jb.mass_matrix(model, q), rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(P["bias_forces"], jb.bias_forces(model, q, v), rtol=1e-11, atol=1e-12)
+    np.testing.assert_allclose(P["acceleration"], jb.forward_dynamics(model, q, v, tau), rtol=1e-10, atol=1e-11)
     # the drive torques are the hinge torques, and the reaction moment about n is the drive
-    np.testing.assert_allclose(jb.planar.inverse_dynamics(system, theta, omega, a_abs), tau, rtol=1e-10, atol=1e-11)
+    np.testing.assert_allclose(P["drive"], tau, rtol=1e-10, atol=1e-11)
     _, moment = jb.joint_reactions(model, q, v, jb.forward_dynamics(model, q, v, tau))
     n_axis = np.asarray(model.joint_axis[0])
     np.testing.assert_allclose(np.asarray(moment) @ n_axis, tau, rtol=1e-10, atol=1e-11)
     # kinetic energy and potential energy differences agree
-    np.testing.assert_allclose(
-        jb.planar.kinetic_energy(system, theta, omega), jb.kinetic_energy(model, q, v), rtol=1e-12
-    )
-    q2 = q + 0.3
-    theta2 = jb.planar.relative_to_absolute(system, q2 - model.qpos0)
-    np.testing.assert_allclose(
-        jb.planar.potential_energy(system, theta2) - jb.planar.potential_energy(system, theta),
-        jb.potential_energy(model, q2) - jb.potential_energy(model, q), rtol=1e-10, atol=1e-12,
-    )
+    np.testing.assert_allclose(P["kinetic_energy"], jb.kinetic_energy(model, q, v), rtol=1e-12)
+    np.testing.assert_allclose(P["potential_rise"], jb.potential_energy(model, q2) - jb.potential_energy(model, q),
+                               rtol=1e-10, atol=1e-12)
+
+
+@eqx.filter_jit  # the planar functions in one program (called one by one they compile each operation)
+def _planar_quantities(system, q_rel, v, tau, q2_rel):
+    """The planar side of the comparison, in absolute angles, mapped back to the hinge coordinates."""
+    theta = jb.planar.relative_to_absolute(system, q_rel)
+    omega = jb.planar.relative_to_absolute(system, v)
+    a_abs = jb.planar.forward_dynamics(system, theta, omega, tau)
+    theta2 = jb.planar.relative_to_absolute(system, q2_rel)
+    return {
+        "mass_matrix": jb.planar.joint_mass_matrix(system, theta),
+        "bias_forces": jb.planar.joint_bias_forces(system, theta, omega),
+        "acceleration": jb.planar.absolute_to_relative(system, a_abs),
+        "drive": jb.planar.inverse_dynamics(system, theta, omega, a_abs),
+        "kinetic_energy": jb.planar.kinetic_energy(system, theta, omega),
+        "potential_rise": jb.planar.potential_energy(system, theta2) - jb.planar.potential_energy(system, theta),
+    }
 
 
 def test_from_model_rejects_what_is_not_planar():

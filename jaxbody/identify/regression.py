@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._types import Array, ArrayLike, Float
+from .._util import compiled_when_eager
 from ..dynamics import inverse_dynamics
 from ..model import Model
 from .inertial import check_extra, reference_parameters, with_parameters
@@ -15,6 +16,7 @@ from .inertial import check_extra, reference_parameters, with_parameters
 __all__ = ["regressor", "stacked_regressor"]
 
 
+@compiled_when_eager  # one program when called on concrete states (it differentiates inverse dynamics)
 def regressor(
     model: Model,
     q: Float[ArrayLike, " nq"],

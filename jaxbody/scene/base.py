@@ -12,52 +12,19 @@ uniform field or of body wrenches (:meth:`Scene.uniform_field_force`,
 
 import abc
 import dataclasses
-import functools
 from typing import Any
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
-import numpy as np
 
 from .._types import Array, Float
+from .._util import compiled_when_eager
 from ..effects import EffectContext, Gravity
 from ..joints import BALL, FREE
 from ..kinematics import qpos_rate
 from ..model import Model
 
-__all__ = ["Scene", "ModelScene", "compiled_when_eager"]
-
-
-def compiled_when_eager(method):
-    """A scene method that runs as one compiled program when called on concrete values (in a
-    notebook, a test, a failure diagnosis), and as plain code when traced (a vector field inside
-    :func:`jaxbody.simulate`, ``jit``, ``vmap``, ``grad``), where the caller's program holds it.
-
-    Called eagerly, JAX would run the method's hundreds of operations one by one, each compiled
-    on its first use: the first ``acceleration`` of a five-body spatial scene took 216
-    compilations and 7.4 s. As one program it is one compilation, cached per scene structure
-    and input shapes (:func:`equinox.filter_jit`: the scene's arrays are inputs, so new
-    parameter values reuse it). Python numbers among the arguments (a time ``t``) become arrays
-    of the state's dtype, so a new value does not compile a new program."""
-    program = eqx.filter_jit(method)
-
-    @functools.wraps(method)
-    def run(self, *args, **kwargs):
-        leaves = jax.tree.leaves((args, kwargs))
-        if any(isinstance(x, jax.core.Tracer) for x in leaves):
-            return method(self, *args, **kwargs)
-        dtype = next((x.dtype for x in leaves if isinstance(x, (np.ndarray, jax.Array))
-                      and jnp.issubdtype(x.dtype, jnp.floating)), None)
-
-        def as_array(x):
-            if isinstance(x, (int, float)) and not isinstance(x, bool):
-                return jnp.asarray(x, dtype)
-            return jnp.asarray(x) if isinstance(x, (list, tuple)) else x
-
-        return program(self, *(as_array(a) for a in args), **{k: as_array(a) for k, a in kwargs.items()})
-
-    return run
+__all__ = ["Scene", "ModelScene"]
 
 
 class Scene(eqx.Module):
