@@ -388,7 +388,7 @@ def test_the_compiled_solve_has_no_host_callback_and_the_checks_stay_outside():
     assert len(solves) == 1
     assert _callbacks(solves[0].params["jaxpr"].jaxpr) == 0
     assert _callbacks(jaxpr) > 0  # the traced boundary checks and the failure report, outside
-    with pytest.raises(Exception, match=r"dt0 must step from t0 towards t1"):
+    with pytest.raises(Exception, match=r"t1 must not be before t0"):
         jax.block_until_ready(jax.jit(run)(-1.0))
     with pytest.raises(Exception, match="saveat.ts must be increasing or decreasing"):
         diffrax.diffeqsolve(diffrax.ODETerm(lambda t, y, args: -y), diffrax.Tsit5(), 0.0, 1.0, 0.1, jnp.array(1.0),

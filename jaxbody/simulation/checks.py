@@ -157,7 +157,8 @@ def checked_step_sign(dt0, t0, t1):
     left out of it, see :func:`jaxbody.simulation.solve.integrate`)."""
     if dt0 is None or is_concrete(dt0, t0, t1):
         return dt0
-    return eqx.error_if(dt0, (t1 - t0) * dt0 < 0, "simulate: dt0 must step from t0 towards t1 ((t1 - t0) * dt0 >= 0)")
+    msg = "simulate: t1 must not be before t0 (a solve with a step dt0 runs forward: (t1 - t0) * dt0 >= 0)"
+    return eqx.error_if(dt0, (t1 - t0) * dt0 < 0, msg)
 
 
 def check_positive(name, value, integer=False):
