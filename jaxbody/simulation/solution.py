@@ -154,8 +154,9 @@ class Solution(eqx.Module):
             (changes of the constraints' coordinate partition, see
             :class:`jaxbody.simulation.PartitionSolver`; ``0`` without constraints).
         result: a :class:`RESULTS` code (``successful``; ``event_occurred`` when an event ended
-            the solve; a failure code otherwise), one per member of a batch: ``sol[i].result``
-            is member ``i``'s, :attr:`failed` the mask of failed members.
+            the solve; a failure code otherwise), one per member of a batch: ``sol.result[i]``
+            (or ``sol[i].result``) is member ``i``'s (:class:`ResultCodes`: indexed, counted by
+            ``len`` and iterated per member), :attr:`failed` the mask of failed members.
         t_final, q_final, v_final: where the solve stopped (``t1``, the event time, or the
             last step of a failed solve: with ``throw=False`` these are the failure's time and
             state, the ones a ``throw=True`` error message quotes). A member that failed the
