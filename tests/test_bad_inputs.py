@@ -53,6 +53,10 @@ def test_a_batch_is_indexable_with_results_per_member_and_a_failed_mask():
     assert member.result == jb.RESULTS.invalid_input
     assert sol[0].result == jb.RESULTS.successful
     assert sol[-1].t.shape == sol.t.shape[1:]
+    # the result alone, per member: indexed, counted and iterated
+    assert sol.result[1] == jb.RESULTS.invalid_input and sol.result[-1] == jb.RESULTS.successful
+    assert len(sol.result) == 3
+    assert [bool(r == jb.RESULTS.successful) for r in sol.result] == [True, False, True]
     # the member that never started is marked: no time reached, no state
     assert float(member.t_final) == 0.0
     assert np.all(np.isnan(np.asarray(member.q_final))) and np.all(np.isnan(np.asarray(member.q)))

@@ -103,3 +103,42 @@ def test_native_program_is_loaded_from_the_cache_by_the_next_process(tmp_path, m
     assert runs[0]["dir"] == str(tmp_path / "jax")
     assert runs[1]["hits"] > 0, runs
     assert runs[0]["a"] == runs[1]["a"]
+
+
+_SOLVE_WORKER = r"""
+import json, logging
+import jax
+jax.config.update("jax_enable_x64", True)
+jax.config.update("jax_explain_cache_misses", True)  # JAX then logs each hit and miss by program name
+import jax.numpy as jnp
+import jaxbody as jb
+messages = []
+handler = logging.Handler()
+handler.emit = lambda record: messages.append(record.getMessage())
+logger = logging.getLogger("jax._src.compiler")
+logger.addHandler(handler)
+logger.setLevel(logging.DEBUG)  # hits are logged at DEBUG level
+b = jb.ModelBuilder()
+b.add_body("arm", mass=1.0, com=(0, 0, -0.2), inertia=(0.01, 0.01, 0.002), joints=[jb.Hinge(axis=(0, 1, 0))])
+model = b.build()
+sol = jb.simulate(model, jnp.array([0.3]), jnp.array([0.0]), 1.0)
+print(json.dumps({"q": [float(x) for x in sol.q[:, 0]],
+                  "solve_hits": sum("cache hit for 'jit__solve'" in m for m in messages),
+                  "callbacks": [m for m in messages if "host callbacks" in m]}))
+"""
+
+
+@pytest.mark.slow  # two fresh processes, each compiling or loading a solve (about 15 s)
+def test_the_solve_is_loaded_from_the_cache_by_the_next_process(tmp_path):
+    """A first ``jb.simulate`` compiles its solve once: the next process loads the program from
+    the cache (it holds no host callback, which JAX's cache would refuse) and gets the same numbers."""
+    env = {k: v for k, v in os.environ.items() if k not in ("JAX_COMPILATION_CACHE_DIR", "JAXBODY_JAX_CACHE")}
+    env.update(JAXBODY_CACHE_DIR=str(tmp_path), PYTHONPATH=str(REPO), JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
+    runs = []
+    for _ in range(2):
+        out = subprocess.run([sys.executable, "-c", _SOLVE_WORKER], capture_output=True, text=True, timeout=600, env=env)
+        assert out.returncode == 0, out.stderr[-3000:]
+        runs.append(json.loads(out.stdout.strip().splitlines()[-1]))
+    assert runs[0]["callbacks"] == [] and runs[1]["callbacks"] == [], runs
+    assert runs[0]["solve_hits"] == 0 and runs[1]["solve_hits"] == 1, runs
+    assert runs[0]["q"] == runs[1]["q"]

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import jaxbody as jb
+from _support.jaxpr_tools import count_eqns
 from jaxbody.simulation import DynamicalSystem, Solution
 
 
@@ -366,3 +367,29 @@ def test_constant_steps_bound_the_budget_and_the_checkpoints():
     assert int(n_default) == int(n_tight) == 100
     np.testing.assert_allclose(l_default, l_tight, rtol=1e-14)
     np.testing.assert_allclose(g_default, g_tight, rtol=1e-12)
+
+
+def _callbacks(jaxpr) -> int:
+    return count_eqns(jaxpr, lambda e: "callback" in e.primitive.name)
+
+
+def test_the_compiled_solve_has_no_host_callback_and_the_checks_stay_outside():
+    """JAX's persistent cache stores no program with a host callback: the solve's program has
+    none (diffrax's checks of the save times and of the step's sign are made by jaxbody before
+    it), so a second process loads it from the cache. Under the user's ``jit`` the checks are
+    still in the user's program, outside the solve, and a user's own diffrax solve keeps them."""
+    system, q0, v0 = oscillator(4.0), jnp.array([1.0]), jnp.array([0.0])
+
+    def run(t1):
+        return jb.simulate(system, q0, v0, t1, solver="rk4", dt0=0.05, saveat=jnp.array([0.0, 0.5]) * t1).q
+
+    jaxpr = jax.make_jaxpr(run)(1.0).jaxpr
+    solves = [e for e in jaxpr.eqns if e.params.get("name") == "_solve"]
+    assert len(solves) == 1
+    assert _callbacks(solves[0].params["jaxpr"].jaxpr) == 0
+    assert _callbacks(jaxpr) > 0  # the traced boundary checks and the failure report, outside
+    with pytest.raises(Exception, match=r"t1 must not be before t0"):
+        jax.block_until_ready(jax.jit(run)(-1.0))
+    with pytest.raises(Exception, match="saveat.ts must be increasing or decreasing"):
+        diffrax.diffeqsolve(diffrax.ODETerm(lambda t, y, args: -y), diffrax.Tsit5(), 0.0, 1.0, 0.1, jnp.array(1.0),
+                            saveat=diffrax.SaveAt(ts=jnp.array([0.5, 0.2])))

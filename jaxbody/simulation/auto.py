@@ -104,11 +104,26 @@ def warn_below_resolution(dtype, rtol, atol) -> None:
 
 
 @eqx.filter_jit
-def _mass_matrix(scene, q):
-    # the Hessian of the kinetic energy in v: the mass matrix in the scene's own coordinates
-    # (spatial, planar or embedded), whatever path computes the dynamics
-    v = jnp.zeros((scene.nv,), q.dtype)
-    return jax.hessian(lambda v: scene.kinetic_energy(q, v))(v)
+def _kinetic_energies(scene, q, velocities):
+    # forward evaluations only: no derivative of the dynamics is traced or compiled, which keeps
+    # the first call of a solve short (a Hessian through the kernels costs seconds to trace)
+    return jax.vmap(lambda v: scene.kinetic_energy(q, v))(velocities)
+
+
+def _mass_matrix(scene, q) -> np.ndarray:
+    """The mass matrix in the scene's own coordinates (spatial, planar or embedded), whatever path
+    computes the dynamics, by polarisation of the kinetic energy ``T(v) = ½ vᵀMv``:
+    ``M_ii = 2 T(e_i)`` and ``M_ij = T(e_i + e_j) − T(e_i) − T(e_j)`` (exact for a quadratic form
+    up to rounding, ample for an estimate of the fastest mode)."""
+    nv = scene.nv
+    i, j = np.triu_indices(nv, k=1)
+    eye = np.eye(nv)
+    velocities = np.concatenate([eye, eye[i] + eye[j]]).astype(np.asarray(q).dtype)
+    energies = np.asarray(_kinetic_energies(scene, q, jnp.asarray(velocities)), float)
+    single, pairs = energies[:nv], energies[nv:]
+    M = np.diag(2.0 * single)
+    M[i, j] = M[j, i] = pairs - single[i] - single[j]
+    return M
 
 
 def stiffness_estimate(scene, q) -> dict | None:
@@ -156,8 +171,7 @@ def _estimate(scene, q, springs, dampers):
         C += np.diag(np.asarray(e.damping, float))
     if not np.any(K) and not np.any(C):
         return None
-    M = np.asarray(_mass_matrix(scene, jnp.asarray(q)), float)
-    M = 0.5 * (M + M.T)
+    M = _mass_matrix(scene, jnp.asarray(q))
     try:
         w2, phi = scipy.linalg.eigh(K, M)
         decay = float(np.max(scipy.linalg.eigh(C, M, eigvals_only=True)))

@@ -33,6 +33,7 @@ __all__ = [
     "value_checks",
     "concrete_value_checks",
     "checked_save_times",
+    "checked_step_sign",
     "batch_member_checks",
     "Q0_ATOL",
     "check_positive",
@@ -147,6 +148,17 @@ def checked_save_times(saveat, t0, t1):
     bad = jnp.any(ts < t0) | jnp.any(ts > t1) | jnp.any(jnp.diff(ts) < 0)
     ts = eqx.error_if(ts, bad, msg + " (a time lies outside [t0, t1] = the solve's interval, or they decrease)")
     return eqx.tree_at(lambda s: s.subs.ts, saveat, ts)
+
+
+def checked_step_sign(dt0, t0, t1):
+    """``dt0`` checked for a step that runs from ``t0`` towards ``t1`` (``(t1 - t0) * dt0 ≥ 0``):
+    concrete values were checked already (``t1`` after ``t0``, ``dt0`` positive); traced ones carry
+    an ``eqx.error_if`` here, outside the compiled solve (diffrax's own check of the same rule is
+    left out of it, see :func:`jaxbody.simulation.solve.integrate`)."""
+    if dt0 is None or is_concrete(dt0, t0, t1):
+        return dt0
+    msg = "simulate: t1 must not be before t0 (a solve with a step dt0 runs forward: (t1 - t0) * dt0 >= 0)"
+    return eqx.error_if(dt0, (t1 - t0) * dt0 < 0, msg)
 
 
 def check_positive(name, value, integer=False):

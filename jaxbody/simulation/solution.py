@@ -25,6 +25,7 @@ __all__ = [
     "RESULTS",
     "SimulationError",
     "Solution",
+    "ResultCodes",
     "load_solution",
     "result_code",
     "result_from_code",
@@ -69,10 +70,52 @@ def result_code(result) -> ArrayLike:
     return code
 
 
+class ResultCodes(type(RESULTS.successful)):
+    """The :class:`RESULTS` item of a solve, as :attr:`Solution.result` holds it: compared like
+    any item (``sol.result == RESULTS.successful``, an array per member of a batch) and, for a
+    batch, indexed per member: ``sol.result[i]`` is member ``i``'s item (``sol.result[1] ==
+    RESULTS.invalid_input``), ``len`` counts the members and iterating gives them in order."""
+
+    def _members(self):
+        code = jnp.asarray(result_code(self))
+        if code.ndim == 0:
+            raise TypeError("a single solve's result has no members: compare it (sol.result == RESULTS.successful) "
+                            "or index a batch's (sol.result[i] of a solution from jax.vmap or jaxbody.simulate_batch)")
+        return code
+
+    def __getitem__(self, i) -> "ResultCodes":
+        code = self._members()
+        if isinstance(i, (int, np.integer)) and not -len(code) <= i < len(code):
+            raise IndexError(f"Solution.result: no batch member {i}; the batch has {len(code)} members")
+        return jax.tree.unflatten(jax.tree.structure(self), [code[i]])
+
+    def __len__(self) -> int:
+        return int(self._members().shape[0])
+
+    def __iter__(self):
+        return (self[i] for i in range(len(self)))
+
+    def __bool__(self) -> bool:
+        # an object's truth, as the item had before it had a length (a single solve has none)
+        return True
+
+
+def _result_codes(item):
+    """``item`` (a :class:`RESULTS` item) as :class:`ResultCodes` (the field converter of
+    :attr:`Solution.result`); anything else (a transformation's placeholder) as it is."""
+    if isinstance(item, ResultCodes) or not isinstance(item, type(RESULTS.successful)):
+        return item
+    return jax.tree.unflatten(jax.tree.structure(_RESULT_CODES), jax.tree.leaves(item))
+
+
 def result_from_code(code) -> RESULTS:
     """The :class:`RESULTS` item of an integer code (the inverse of :func:`result_code`). No JAX
     operation runs: a host callback that reports a failure calls it too."""
     return jax.tree.unflatten(jax.tree.structure(RESULTS.successful), [code])
+
+
+# the pytree structure of a ResultCodes item (its code, its enumeration), built once
+_RESULT_CODES = ResultCodes(np.array(0, np.int32), RESULTS)
 
 
 class Solution(eqx.Module):
@@ -111,8 +154,9 @@ class Solution(eqx.Module):
             (changes of the constraints' coordinate partition, see
             :class:`jaxbody.simulation.PartitionSolver`; ``0`` without constraints).
         result: a :class:`RESULTS` code (``successful``; ``event_occurred`` when an event ended
-            the solve; a failure code otherwise), one per member of a batch: ``sol[i].result``
-            is member ``i``'s, :attr:`failed` the mask of failed members.
+            the solve; a failure code otherwise), one per member of a batch: ``sol.result[i]``
+            (or ``sol[i].result``) is member ``i``'s (:class:`ResultCodes`: indexed, counted by
+            ``len`` and iterated per member), :attr:`failed` the mask of failed members.
         t_final, q_final, v_final: where the solve stopped (``t1``, the event time, or the
             last step of a failed solve: with ``throw=False`` these are the failure's time and
             state, the ones a ``throw=True`` error message quotes). A member that failed the
@@ -150,7 +194,7 @@ class Solution(eqx.Module):
     constraint_drift: Any
     reactions: Any
     stats: dict[str, Array]
-    result: RESULTS
+    result: RESULTS = eqx.field(converter=_result_codes)
     t_final: Float[Array, ""]
     q_final: Float[Array, " nq"]
     v_final: Float[Array, " nv"]

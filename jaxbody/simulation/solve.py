@@ -5,10 +5,12 @@ fields of the :class:`Solution` computed from the saved states.
 per phase, carrying the work vector across the switches.
 """
 
+import contextlib
 import dataclasses
 
 import diffrax
 import equinox as eqx
+import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -23,6 +25,7 @@ from .checks import (
     batch_member_checks,
     check_positive,
     checked_save_times,
+    checked_step_sign,
     concrete_constraint_check,
     concrete_value_checks,
     scene_constraints,
@@ -92,6 +95,7 @@ def simulate_scene(
     if saveat.dense or saveat.subs is not None and not isinstance(saveat.subs, diffrax.SubSaveAt):
         raise ValueError("simulate: pass dense=True instead of SaveAt(dense=True); nested subs are not supported")
     saveat = checked_save_times(saveat, t0, t1)
+    dt0 = checked_step_sign(dt0, t0, t1)
     adjoint = choose_adjoint(adjoint)
     if isinstance(controller, (diffrax.ConstantStepSize, diffrax.StepTo)) and not isinstance(
         adjoint, diffrax.BacksolveAdjoint
@@ -200,10 +204,42 @@ def progress_meter(progress):
     return diffrax.TqdmProgressMeter()
 
 
+# the beginnings of diffrax's argument checks that jaxbody makes itself before the solve: the
+# save times (checks.checked_save_times) and the sign of (t1 - t0) * dt0 (checks.checked_step_sign)
+_RECHECKS = ("saveat.ts must be increasing or decreasing.", "saveat.ts must lie between t0 and t1.",
+             "Must have (t1 - t0) * dt0 >= 0")
+
+
+@contextlib.contextmanager
+def _rechecks_left_out():
+    """While diffrax's solve is traced: its checks of what jaxbody has already checked return
+    their argument unchanged instead of staging an ``eqx.error_if``.
+
+    Why: an ``error_if`` on traced values is a host callback in the compiled program, and JAX's
+    persistent compilation cache stores no program with a host callback; diffrax checks the save
+    times (traced arguments of the compiled solve) on every call, so without this the main solve
+    would be compiled anew in every process. Every other check (diffrax's, optimistix's,
+    lineax's) is kept. The replacement lives only for the trace (the solve's compiled program is
+    built from it) and calls nothing cached, so no other program is traced without its checks."""
+    original = eqxi.error_if
+
+    def error_if(x, pred, msg, *args, **kwargs):
+        if isinstance(msg, str) and msg.startswith(_RECHECKS):
+            return x
+        return original(x, pred, msg, *args, **kwargs)
+
+    eqxi.error_if = error_if
+    try:
+        yield
+    finally:
+        eqxi.error_if = original
+
+
 def integrate(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps, adjoint, meter, event, dense, slots):
     """The step-by-step solve (diffrax): ``(ts, ys, tf, yf, stats, result)`` (saved times and
     states, the final time and state as arrays of one entry, the step counts and the result,
-    each trajectory's failure applied) and diffrax's solution."""
+    each trajectory's failure applied) and diffrax's solution. The caller has checked the save
+    times and the sign of ``(t1 - t0) * dt0`` (see :func:`_rechecks_left_out`)."""
     main = saveat.subs if saveat.subs is not None else diffrax.SubSaveAt(ts=saveat.ts, t0=saveat.t0, t1=saveat.t1, steps=saveat.steps)
     # the end state is saved separately, except with backsolve (which takes no SaveAt(subs=...))
     # and when the saved times include t1 (diffrax saves the state the solve ended in there, at
@@ -212,23 +248,24 @@ def integrate(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_ste
     single = isinstance(adjoint, diffrax.BacksolveAdjoint) or (main.t1 and not isinstance(solver, PartitionSolver))
     depth = recording_depth(solver)
     state = isinstance(solver, PartitionSolver) or depth is not None
-    sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(VectorField(slots)),
-        solver,
-        t0,
-        t1,
-        dt0,
-        y0,
-        args=(scene, valid),
-        saveat=diffrax.SaveAt(subs=main, dense=dense, solver_state=state) if single else diffrax.SaveAt(
-            subs=[main, diffrax.SubSaveAt(t1=True)], dense=dense, solver_state=state),
-        stepsize_controller=controller,
-        max_steps=max_steps,
-        adjoint=adjoint,
-        throw=False,
-        progress_meter=meter,
-        event=event,
-    )
+    with _rechecks_left_out():
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(VectorField(slots)),
+            solver,
+            t0,
+            t1,
+            dt0,
+            y0,
+            args=(scene, valid),
+            saveat=diffrax.SaveAt(subs=main, dense=dense, solver_state=state) if single else diffrax.SaveAt(
+                subs=[main, diffrax.SubSaveAt(t1=True)], dense=dense, solver_state=state),
+            stepsize_controller=controller,
+            max_steps=max_steps,
+            adjoint=adjoint,
+            throw=False,
+            progress_meter=meter,
+            event=event,
+        )
     ys, yf = (sol.ys, sol.ys) if single else sol.ys
     ts, tf = (sol.ts, sol.ts) if single else sol.ts
     stats = {k: jnp.asarray(sol.stats[k]) for k in ("num_steps", "num_accepted_steps", "num_rejected_steps")}

@@ -182,16 +182,23 @@ def nan_law_solve():
 
 @functools.lru_cache
 def _jitted_solve():
-    return jax.jit(jax.vmap(lambda q0, ts: law_solve_at(q0, ts).q, in_axes=(0, None)))
+    model = pendulum()  # built outside the trace: the cases are about the solve's inputs
+    return jax.jit(jax.vmap(lambda q0, ts: law_solve_at(q0, ts, model).q, in_axes=(0, None)))
 
 
-def law_solve_at(q0, ts):
-    return jb.simulate(pendulum(), q0, z(1), 0.1, tau=Law(jnp.array(0.0), jnp.array(-10.0)), max_steps=64, saveat=ts)
+def law_solve_at(q0, ts, model=None):
+    model = pendulum() if model is None else model
+    return jb.simulate(model, q0, z(1), 0.1, tau=Law(jnp.array(0.0), jnp.array(-10.0)), max_steps=64, saveat=ts)
 
 
 def jit_solve(q0=((0.3,), (0.2,)), ts=(0.05, 0.1)):
     """:func:`law_solve_at` of a batch of two under ``jax.jit`` (one compilation for every case)."""
     return _jitted_solve()(jnp.asarray(q0, float), jnp.asarray(ts, float))
+
+
+def jit_mass_matrix(model):
+    """``jb.mass_matrix`` of ``model`` (built outside the trace) under ``jax.jit``."""
+    return jax.jit(lambda q: jb.mass_matrix(model, q))
 
 
 def builder(**kwargs):
@@ -460,7 +467,7 @@ def _traced_cases():
              lambda: jax.vmap(lambda q: jb.mass_matrix(p(), q))(two), r"\bq contains NaN or inf.*batch member 1"),
         Case("jit vmap simulate q0 NaN in member 1", lambda: jit_solve(q0=((0.3,), (np.nan,))),
              r"q0 contains NaN or inf \(batch member 1 of 2\)", first_line=False),
-        Case("jit mass_matrix q NaN", lambda: jax.jit(lambda q: jb.mass_matrix(p(), q))(jnp.array([jnp.nan])),
+        Case("jit mass_matrix q NaN", lambda: jit_mass_matrix(p())(jnp.array([jnp.nan])),
              r"\bq contains NaN or inf", first_line=False),
         Case("jit simulate saveat outside [t0, t1]", lambda: jit_solve(ts=(0.05, 2.0)), r"saveat.*outside \[t0, t1\]",
              first_line=False),
@@ -487,6 +494,9 @@ def _solution_cases():
         Case("Solution.evaluate before t0", lambda: dense_solution().evaluate(-0.1), r"t = -0.1 .*outside \[t0, t_final\]"),
         Case("Solution index of an unbatched solve", lambda: solved()[0], r"not batched"),
         Case("Solution index out of range", lambda: batch_solution()[5], r"batch member 5.*3 members"),
+        Case("Solution.result index of an unbatched solve", lambda: solved().result[0],
+             r"single solve's result has no members"),
+        Case("Solution.result index out of range", lambda: batch_solution().result[3], r"result: no batch member 3.*3 members"),
         Case("Solution.to_csv of a batch", lambda: batch_solution().to_csv(tmpfile("b.csv")), r"batch.*sol\[i\]"),
         Case("load_solution missing file", lambda: jb.load_solution("/nonexistent/run.npz"), r"/nonexistent/run.npz"),
         Case("load_solution CSV of other columns", csv_roundtrip_bad_header, r"bad.csv.*column"),
