@@ -56,6 +56,7 @@ __all__ = [
     "adjoint_applies",
     "bias_and_mass",
     "energies",
+    "fourier_series",
     "inverse_dynamics",
     "inverse_dynamics_vjp",
     "ltdl_factor",
@@ -200,6 +201,25 @@ def _axis_angle(axis, angle):
         (t * x * y + s * z, 1.0 + t * (y * y - n2), t * y * z - s * x),
         (t * x * z - s * y, t * y * z + s * x, 1.0 + t * (z * z - n2)),
     )
+
+
+def fourier_series(t, omega, offset: Sequence, sine: Sequence, cosine: Sequence) -> list:
+    """``c_i + Σ_{k=1..K} (a_ik sin(k ω t) + b_ik cos(k ω t))`` for each entry ``i`` (``offset``:
+    the ``c_i``; ``sine``, ``cosine``: each entry's ``K`` coefficients), one sine and cosine per
+    harmonic at the angle ``(k ω) t``. :class:`jaxbody.FourierTorque` runs it on array columns,
+    the native code generator on symbols: both add in this order."""
+    harmonics = len(sine[0]) if len(sine) else 0
+    waves = []
+    for k in range(1, harmonics + 1):
+        angle = (k * omega) * t
+        waves.append((_sin(angle), _cos(angle)))
+    out = []
+    for c, a, b in zip(offset, sine, cosine):
+        total = c
+        for (s, co), ak, bk in zip(waves, a, b):
+            total = total + ak * s + bk * co
+        out.append(total)
+    return out
 
 
 def scalars(x) -> list:

@@ -3,7 +3,7 @@
 A fixed-step ``"rk4"`` solve on the native kernel that keeps only its end state
 (``saveat=SaveAt(t1=True)``), and an adaptive ``"tsit5"``, ``"dopri5"`` or ``"dopri8"`` solve under
 diffrax's ``PIDController`` that saves its end state and/or requested times, of a scene of
-gravity, joint springs and joint dampers, without an event, run as one native call
+gravity, joint springs, joint dampers and a Fourier-series joint torque, without an event, run as one native call
 (:func:`jaxbody.backends.native.rk4_rollout`, :func:`jaxbody.backends.native.adaptive_solve`) instead of
 diffrax's loop. They apply only there because only there does the native program compute
 exactly what the loop would: the same field (:func:`jaxbody.simulation.field.native_field`), the
@@ -94,13 +94,13 @@ def native_solve_applies(scene, y0, solver, controller, saveat, adjoint, meter, 
     # the adaptive program's work slot is one number (the dampers' work)
     if method != "rk4" and len(y0) == 3 and jnp.size(y0[2]) != 1:
         return False
-    return native_field(scene, y0, slots) is not None
+    return native_field(scene, y0, slots, timed=True) is not None
 
 
 def _native_arguments(scene, y0, valid, slots) -> tuple:
     """``(model, keyword arguments)`` of :func:`jaxbody.backends.native.rk4_rollout` for a solve of ``scene``
     from ``y0`` (:func:`jaxbody.simulation.field.native_field`)."""
-    model, gravity, passive = native_field(scene, y0, slots)
+    model, gravity, passive = native_field(scene, y0, slots, timed=True)
     # a member that failed the boundary check stays frozen, as under the stepped field
     kwargs = dict(gravity=gravity, frozen=False if valid is None else ~valid, **passive)
     return model, kwargs

@@ -14,6 +14,7 @@ import numpy as np
 from ..._types import Array, ArrayLike, Float
 from ...model import Model
 from .build import compiled_kernel
+from .solve import torque_operand
 from .symbolic import parameter_vector
 from .tableaux import METHODS
 
@@ -59,8 +60,9 @@ def adaptive_checkpoint_layout(model: Model, max_steps: int, checkpoints: int) -
 
 
 def _rows(model, method, q, v, t0, t1, dt0, max_steps, control, ts, force, gravity, stiffness, reference, damping,
-          work0, has_work, frozen, every):
-    """The operands of the ``"adaptive:…"`` programs, as ``(1, n)`` rows."""
+          torque, work0, has_work, frozen, every):
+    """The operands of the ``"adaptive:…"`` programs, as ``(1, n)`` rows, the number of save
+    times and the torque's harmonics (:func:`.solve.torque_operand`)."""
     from equinox.internal import prevbefore
 
     if method not in METHODS:
@@ -88,8 +90,10 @@ def _rows(model, method, q, v, t0, t1, dt0, max_steps, control, ts, force, gravi
     schedule = jnp.stack([jnp.asarray(x, dtype) for x in fields])
     ts_row = jnp.zeros((1,), dtype) if ts is None else jnp.asarray(ts, dtype)
     row = lambda x: jnp.reshape(x, (1, -1))  # noqa: E731
-    return (row(q), row(v), row(force), row(parameter_vector(model)), row(gravity), jnp.zeros((1, 1), dtype),
-            row(stiffness), row(reference), row(damping), row(jnp.asarray(work0, dtype)), row(schedule), row(ts_row)), n_ts
+    coefficients, harmonics = torque_operand(torque, model.nv, dtype)
+    return (row(q), row(v), row(force), row(parameter_vector(model)), row(gravity), coefficients,
+            row(stiffness), row(reference), row(damping), row(jnp.asarray(work0, dtype)), row(schedule),
+            row(ts_row)), n_ts, harmonics
 
 
 def adaptive_solve(
@@ -109,6 +113,7 @@ def adaptive_solve(
     stiffness: Float[ArrayLike, " n_joint"] | None = None,
     reference: Float[ArrayLike, " nq"] | None = None,
     damping: Float[ArrayLike, " nv"] | None = None,
+    torque: tuple | None = None,
     work0: ArrayLike = 0.0,
     has_work: bool = False,
     frozen: ArrayLike = False,
@@ -120,7 +125,8 @@ def adaptive_solve(
     controller's settings; ``dt0``: the first step (``None``: 0.01, as diffrax's loop takes it);
     ``max_steps``: the budget of attempted steps; ``ts``: times (non-decreasing) at which the state
     is saved from the dense output. The field is that of :func:`rk4_step` (``force``,
-    ``gravity``, springs and dampers held); ``w`` integrates the dampers' power ``P`` and enters
+    ``gravity``, springs and dampers held) plus a Fourier-series joint torque ``torque =
+    (frequency, sine, cosine, offset)`` at each stage's time (:func:`rk4_rollout`); ``w`` integrates the dampers' power ``P`` and enters
     the error norm where ``has_work``. Quaternions are renormalised after each step (not inside
     the error estimate), as :func:`jaxbody.simulate`'s guard does. ``frozen``: the state does
     not move (its field is zero), as ``simulate`` does for an input that failed its checks.
@@ -134,9 +140,10 @@ def adaptive_solve(
     every = 1
     if checkpoints is not None:
         every, width = adaptive_checkpoint_layout(model, max_steps, checkpoints)
-    rows, n_ts = _rows(model, method, q, v, t0, t1, dt0, max_steps, control, ts, force, gravity, stiffness, reference,
-                       damping, work0, has_work, frozen, every)
-    kernel = compiled_kernel(model.tree, model.joints, False, np.dtype(model.body_pos.dtype), f"adaptive:{method}")
+    rows, n_ts, harmonics = _rows(model, method, q, v, t0, t1, dt0, max_steps, control, ts, force, gravity, stiffness,
+                                  reference, damping, torque, work0, has_work, frozen, every)
+    kernel = compiled_kernel(model.tree, model.joints, False, np.dtype(model.body_pos.dtype), f"adaptive:{method}",
+                             harmonics)
     n = model.nq + model.nv + 1
     widths = kernel.widths + (max(n_ts * n, 1),) + ((width,) if checkpoints is not None else ())
     outs = kernel.batched_with(widths)(*rows)
@@ -148,8 +155,8 @@ def adaptive_solve(
 
 def adaptive_solve_vjp(model: Model, method: str, q, v, t0, t1, control: Control, dt0, max_steps: int, checkpoints: int,
                        saved, status, cotangent_q, cotangent_v, cotangent_work=0.0, force=None, *, ts=None,
-                       cotangent_saved=None, gravity=None, stiffness=None, reference=None, damping=None, work0=0.0,
-                       has_work=False, frozen=False):
+                       cotangent_saved=None, gravity=None, stiffness=None, reference=None, damping=None, torque=None,
+                       work0=0.0, has_work=False, frozen=False):
     """Reverse mode of :func:`adaptive_solve` with respect to the initial ``(q, v, w)``, in one
     native call: the accepted steps replayed from the checkpoints ``saved`` (:func:`adaptive_solve`
     with ``checkpoints``) and reversed through the field's generated reverse-mode program, the
@@ -157,12 +164,12 @@ def adaptive_solve_vjp(model: Model, method: str, q, v, t0, t1, control: Control
     of the final state and work, and of the states saved at ``ts`` (``(n_ts, nq + nv + 1)``;
     through each step's dense output). Returns the cotangents of ``(q, v, w)``."""
     every, _ = adaptive_checkpoint_layout(model, max_steps, checkpoints)
-    rows, n_ts = _rows(model, method, q, v, t0, t1, dt0, max_steps, control, ts, force, gravity, stiffness, reference,
-                       damping, work0, has_work, frozen, every)
+    rows, n_ts, harmonics = _rows(model, method, q, v, t0, t1, dt0, max_steps, control, ts, force, gravity, stiffness,
+                                  reference, damping, torque, work0, has_work, frozen, every)
     dtype = model.body_pos.dtype
     row = lambda x: jnp.reshape(jnp.asarray(x, dtype), (1, -1))  # noqa: E731
     ct_saved = jnp.zeros((1,), dtype) if cotangent_saved is None or n_ts == 0 else cotangent_saved
-    kernel = compiled_kernel(model.tree, model.joints, False, np.dtype(dtype), f"adaptive_vjp:{method}")
+    kernel = compiled_kernel(model.tree, model.joints, False, np.dtype(dtype), f"adaptive_vjp:{method}", harmonics)
     ct_q, ct_v, ct_w = kernel.batched(*rows[:11], row(saved), row(status), row(cotangent_q), row(cotangent_v),
                                       row(cotangent_work), rows[11], row(ct_saved))
     return ct_q[0], ct_v[0], ct_w[0, 0]

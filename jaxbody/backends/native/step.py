@@ -24,7 +24,7 @@ def _rk4_composed(fd_kernel, model, q, v, force, gravity, external, h, stiffness
     respect to the parameters, gravity, loads, ``h``, springs and dampers)."""
     sc = scalar.scalars
 
-    def field(qs, vs):
+    def field(qs, vs, t):
         total, power = joint_force(model.joints, qs, vs, sc(force), sc(stiffness), sc(reference), sc(damping))
         a = forward_dynamics_call(fd_kernel, model, jnp.stack(qs), jnp.stack(vs), scalar.stack(total, q.dtype), gravity, external)
         return sc(a), power
