@@ -55,8 +55,8 @@ def native_field(scene, y0, slots, timed: bool = False):
     on the state ``y0 = (q, v[, w])`` exactly (:func:`jaxbody.backends.native.rk4_step`'s arguments):
     the native kernel, and effects that are a uniform gravity field, joint dampers and joint
     springs, and with ``timed`` (the whole-solve programs, which know each stage's time) a
-    :class:`jaxbody.FourierTorque` (``passive["torque"]``); a work vector ``w`` must hold the
-    dampers' work alone (``slots``). ``None`` otherwise."""
+    :class:`jaxbody.FourierTorque` (``passive["torque"]``; its work is a second one: the
+    whole-solve programs integrate both). ``None`` otherwise."""
     # the augmented state of a backsolve adjoint is a 4-tuple: its field is not the scene's
     if not isinstance(y0, tuple) or len(y0) not in (2, 3):
         return None
@@ -71,8 +71,8 @@ def native_field(scene, y0, slots, timed: bool = False):
     torques = [e for e in effects if isinstance(e, FourierTorque)]
     if len(springs) > 1 or len(dampers) > 1 or len(torques) > 1 or scene.direct_kernel() != "native":
         return None
-    # the native programs integrate one work, the dampers': a torque's work is another slot
-    if len(y0) == 3 and (not slots or not dampers or len(slots) != 1 or torques):
+    # the native programs integrate the dampers' work and a torque's: those must be the scene's works
+    if len(y0) == 3 and not slots:
         return None
     gravity = scene.gravity_vector(y0[1].dtype)  # None: no field (rk4_step's default)
     passive = {}

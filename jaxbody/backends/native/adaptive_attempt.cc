@@ -1,6 +1,6 @@
 // What the adaptive solve (adaptive_block.cc) and its reverse sweep's replay
-// (adaptive_vjp_block.cc) share: the helpers below at file scope (@HELPERS@), then, after the
-// marker line, one attempted step (@ATTEMPT@), so that both take the same steps.
+// (adaptive_vjp_block.cc) share: the helpers below, at file scope, then, after the marker line,
+// one attempted step, pasted into both loops, so that both take the same steps.
 static inline V vabs(V x) { return x < T(0) ? -x : x; }
 static inline V vpow(V x, T p) {
   if (p == T(0)) return V{} + T(1);  // diffrax leaves a zero coefficient's factor out
@@ -53,18 +53,19 @@ static inline void advance(I active, I moved, V* y, V* u, V* fs, const V* yp, co
     for (int i = 0; i < N; ++i) yp[i] = ys[i];
     project(yp);
     U total = U{};
-    I nan_q = I{}, nan_v = I{}, finite = (U{} + T(1)) == T(1);
+    I nan_q = I{}, nan_v = I{}, nan_w = I{}, finite = (U{} + T(1)) == T(1);
     for (int i = 0; i < N; ++i) {
       finite &= (yp[i] - yp[i]) == T(0);
       if (i < NQ) nan_q |= yp[i] != yp[i];
       else if (i < NQ + NV) nan_v |= yp[i] != yp[i];
+      else nan_w |= yp[i] != yp[i];
     }
     for (int i = 0; i < N; ++i) {
-      if (i == N - 1 && !has_work) break;
+      if (i >= NQ + NV && !tracked(i - NQ - NV)) continue;  // a work the solve does not carry
       U e = U{};
       for (int j = 0; j < S; ++j) e += E[j] * (k[j][i] * h);  // diffrax: the weights on h·fⱼ
       e = (e != e) ? U{} + T(INFINITY) : e;  // diffrax: a NaN error estimate is infinite
-      const I nan = i < NQ ? nan_q : (i < NQ + NV ? nan_v : (yp[i] != yp[i]));
+      const I nan = i < NQ ? nan_q : (i < NQ + NV ? nan_v : nan_w);  // diffrax: per leaf of (q, v, w)
       const U cand = nan ? y[i] : yp[i];
       const U ay = vabs(y[i]), ac = vabs(cand);
       const U r = e / (atol + (ay > ac ? ay : ac) * rtol);

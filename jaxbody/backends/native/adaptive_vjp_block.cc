@@ -14,7 +14,7 @@
 static void adaptive_vjp_block(const Inputs& in, int64_t b0, int n) {
 @ACCESS@
 @INVARIANT@
-  constexpr int NQ = @NQ@, NV = @NV@, N = NQ + NV + 1, S = @S@, D = @D@;
+  constexpr int NQ = @NQ@, NV = @NV@, NW = @NW@, N = NQ + NV + NW, S = @S@, D = @D@;
   static const T A[S][S] = @A@;
   static const T E[S] = @E@;
   static const T P[S][D] = @P@;
@@ -22,7 +22,10 @@ static void adaptive_vjp_block(const Inputs& in, int64_t b0, int n) {
   const U t1 = ld(10, 1), t1_floor = ld(10, 2), max_steps = ld(10, 3);
   const U rtol = ld(10, 5), atol = ld(10, 6), dtmin = ld(10, 10), dtmax = ld(10, 11);
   const T pcoeff = ld(10, 7)[0], icoeff = ld(10, 8)[0], dcoeff = ld(10, 9)[0], order = ld(10, 16)[0];
-  const bool force_dtmin = ld(10, 12)[0] != T(0), has_work = ld(10, 18)[0] != T(0), has_dtmin = ld(10, 20)[0] != T(0);
+  const bool force_dtmin = ld(10, 12)[0] != T(0), has_dtmin = ld(10, 20)[0] != T(0);
+  // the works the solve carries (bit j: the program's work j, the powers of the field in order)
+  const int64_t works = int64_t(ld(10, 18)[0]);
+  auto tracked = [works](int j) { return ((works >> j) & 1) != 0; };
   const T factormin = ld(10, 13)[0], factormax = ld(10, 14)[0], safety = ld(10, 15)[0];
   const I frozen = ld(10, 17) != T(0);
   const int64_t every = int64_t(ld(10, 19)[0]), n_ts = int64_t(ld(10, 21)[0]);
@@ -32,13 +35,14 @@ static void adaptive_vjp_block(const Inputs& in, int64_t b0, int n) {
   const T* ct_saved = in.x[17];
   const int64_t ct_stride = in.s[17];
   const T c1 = (icoeff + pcoeff + dcoeff) / order, c2 = -(pcoeff + T(2) * dcoeff) / order, c3 = dcoeff / order;
-  const int count = NQ + NV + (has_work ? 1 : 0);
+  int count = NQ + NV;
+  for (int j = 0; j < NW; ++j) count += tracked(j) ? 1 : 0;
   auto evaluate = [&](const U t, const U* sy, U* f) {
     const U* sq = sy;
     const U* sv = sy + NQ;
 @FIELD@
     for (int i = 0; i < N; ++i) f[i] = frozen ? U{} : f[i];
-    if (!has_work) f[N - 1] = U{};
+    for (int j = 0; j < NW; ++j) f[NQ + NV + j] = tracked(j) ? f[NQ + NV + j] : U{};
   };
   // cotangents of (q, v) at sy for cotangents lf of the field (q̇, a, P)
   auto evaluate_vjp = [&](const U t, const U* sy, const U* lf, U* r) {
@@ -58,7 +62,7 @@ static void adaptive_vjp_block(const Inputs& in, int64_t b0, int n) {
   U lam[N], pend[N];
   for (int i = 0; i < NQ; ++i) lam[i] = ld(13, i);
   for (int i = 0; i < NV; ++i) lam[NQ + i] = ld(14, i);
-  lam[N - 1] = ld(15, 0);
+  for (int j = 0; j < NW; ++j) lam[NQ + NV + j] = ld(15, j);
   for (int i = 0; i < N; ++i) pend[i] = U{};
   int64_t total = 0;
   for (int l = 0; l < n; ++l) total = int64_t(taken[l]) > total ? int64_t(taken[l]) : total;
@@ -157,7 +161,7 @@ static void adaptive_vjp_block(const Inputs& in, int64_t b0, int n) {
         if (s < S - 1) {
           evaluate_vjp(stage_time(C[s], tp, tn, h), Y[s], lk[s], r);
           for (int i = 0; i < NQ + NV; ++i) ly[i] = r[i];
-          ly[N - 1] = U{};
+          for (int i = NQ + NV; i < N; ++i) ly[i] = U{};
         } else if (dense) {
           // the last stage's input is the solution (its cotangent so far) and the field there
           // feeds the saved states
@@ -186,7 +190,7 @@ static void adaptive_vjp_block(const Inputs& in, int64_t b0, int n) {
   // the first step's first stage was the field at the initial state itself
   for (int i = 0; i < NQ; ++i) st(0, i, lam[i] + pend[i]);
   for (int i = 0; i < NV; ++i) st(1, i, lam[NQ + i] + pend[NQ + i]);
-  st(2, 0, lam[N - 1]);
+  for (int j = 0; j < NW; ++j) st(2, j, lam[NQ + NV + j]);
 }
 
 extern "C" void jaxbody_range(const Inputs* in, int64_t b0, int64_t b1) {

@@ -234,9 +234,9 @@ class Kernel:
         self.nv, self.nq, self.dtype, self.mode = joints.nv, joints.nq, np.dtype(dtype), mode
         # a whole solve's Fourier-series joint torque: its number of harmonics shapes the program
         self.harmonics = harmonics
+        self.widths = result_widths(joints, mode, harmonics)
         if harmonics is not None and not (mode.startswith("rk4_run") or mode.startswith("adaptive")):
             raise ValueError(f"a Fourier-series joint torque is evaluated by the whole-solve programs only, not {mode!r}")
-        self.widths = result_widths(joints, mode)
         self.target = _handler(self.dtype)
         if mode == "rk4_run":
             self.source = generate_run(tree, joints, self.dtype, harmonics)

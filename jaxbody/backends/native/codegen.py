@@ -11,7 +11,7 @@ import numpy as np
 
 from .. import scalar
 from .symbolic import declared_scalars, Emitter, input_scalars, stop_derivative, Sym, sym_sqrt, SymbolicModel, with_derivative
-from .rk4 import fourier_torque, joint_force, qdot_scalars, rk4_scalars, spring_potential, torque_size
+from .rk4 import fourier_torque, joint_force, qdot_scalars, rk4_scalars, spring_potential, torque_size, work_count
 from .differentiate import active_values, adjoint_program, inverse_dynamics_block, tangent_program
 
 def _template(name: str) -> str:
@@ -39,13 +39,14 @@ MODES = ("fd", "jvp", "vjp", "rk4", "rk4_jvp", "rk4_vjp", "energy", "rk4_run", "
          *(f"{kind}:{method}" for kind in ("adaptive", "adaptive_vjp") for method in ("tsit5", "dopri5", "dopri8")))
 
 
-def result_widths(joints, mode: str) -> tuple:
-    """Row widths of a program's results."""
-    nq, nv = joints.nq, joints.nv
+def result_widths(joints, mode: str, harmonics=None) -> tuple:
+    """Row widths of a program's results (``harmonics``: of a whole solve's Fourier-series joint
+    torque, whose work is a second one)."""
+    nq, nv, nw = joints.nq, joints.nv, work_count(harmonics)
     if mode.startswith("adaptive_vjp:"):
-        return (nq, nv, 1)
+        return (nq, nv, nw)
     if mode.startswith("adaptive:"):
-        return (nq, nv, 1, 6)  # then the saved states and the checkpoints, sized per call
+        return (nq, nv, nw, 6)  # then the saved states and the checkpoints, sized per call
     return {
         "fd": (nv,),
         "jvp": (nv,),
@@ -54,7 +55,7 @@ def result_widths(joints, mode: str) -> tuple:
         "rk4_jvp": (nq, nv, nq, nv, nq, nv, 3),
         "rk4_vjp": (nq, nv, nv),
         "energy": (3,),
-        "rk4_run": (nq, nv, 1, 3),
+        "rk4_run": (nq, nv, nw, 3),
         "rk4_run_vjp": (nq, nv),
     }[mode]
 
@@ -254,18 +255,26 @@ def _run_operands(em: Emitter, tree, joints, harmonics=None):
 
 def _stage_field(em: Emitter, joints, operands, q: list, v: list, t, derivative=None) -> tuple:
     """``(a, P)`` at one stage: the held force plus the torque at time ``t``, the springs and
-    dampers (``P``: the dampers' power), through forward dynamics."""
+    dampers, through forward dynamics; ``P`` the list of works' powers (:func:`.rk4.work_count`):
+    the dampers', then the torque's ``τ·v``."""
     model, f, g, stiffness, reference, damping, torque = operands
+    powers = []
     if torque is not None:
-        f = [fi + ti for fi, ti in zip(f, fourier_torque(torque[0], joints.nv, torque[1], t))]
+        tau = fourier_torque(torque[0], joints.nv, torque[1], t)
+        f = [fi + ti for fi, ti in zip(f, tau)]
+        power = 0.0
+        for ti, vi in zip(tau, v):
+            power = power + ti * vi
+        powers.append(power)
     total, power = joint_force(joints, q, v, f, stiffness, reference, damping)
-    return _acceleration(em, model, joints, q, v, total, g, None, derivative), power
+    return _acceleration(em, model, joints, q, v, total, g, None, derivative), [power] + powers
 
 
 def _run_step(em: Emitter, joints, operands, q: list, v: list, h, derivative=None, t0=None, t1=None) -> tuple:
     """One step of a whole solve on symbolic scalars from ``t0`` to ``t1``: the RK4 step of
     :func:`rk4_scalars`, then the quaternions of ball and free joints renormalised (``q /
-    sqrt(|q|²)``, as :func:`jaxbody.kinematics.normalize_qpos`). Returns ``(q1, v1, Δw)``."""
+    sqrt(|q|²)``, as :func:`jaxbody.kinematics.normalize_qpos`). Returns ``(q1, v1, Δw)``, ``Δw``
+    the list of works' increments."""
 
     def field(q, v, t):
         return _stage_field(em, joints, operands, q, v, t, derivative)
@@ -312,7 +321,8 @@ def generate_run(tree, joints, dtype, harmonics=None) -> str:
     step of :func:`_run_step` on the carried state, the operands loaded before the loop;
     ``harmonics``: that of a Fourier-series joint torque (``None``: none)."""
     _, invariant, step, _, (_, _, dw) = _run_program(tree, joints, harmonics=harmonics)
-    return _run_source(_RUN_BLOCK, invariant, {"BODY": step + [f"dw = {_symbol_value(dw)};"]}, joints, dtype)
+    body = step + [f"dw[{j}] = {_symbol_value(x)};" for j, x in enumerate(dw)]
+    return _run_source(_RUN_BLOCK, invariant, {"BODY": body}, joints, dtype, harmonics)
 
 
 def generate_run_vjp(tree, joints, dtype, harmonics=None) -> str:
@@ -325,21 +335,22 @@ def generate_run_vjp(tree, joints, dtype, harmonics=None) -> str:
     primal = list(rev.ops)
     cq = _carried(rev, "cq", joints.nq, "aq")
     cv = _carried(rev, "cv", joints.nv, "av")
-    pairs = list(zip(q1, cq)) + list(zip(v1, cv)) + [(dw, Sym("aw", rev))]
+    cw = _carried(rev, "cw", len(dw), "aw")
+    pairs = list(zip(q1, cq)) + list(zip(v1, cv)) + [(x, c) for x, c in zip(dw, cw) if isinstance(x, Sym)]
     adj = adjoint_program(primal, active_values(primal, {"q", "v"}), pairs)
     # the kept state's reads, then the step's operations and their adjoints
     body = [f"const U q_{i} = bq[{i}];" for i in range(joints.nq)] + [f"const U v_{i} = bv[{i}];" for i in range(joints.nv)]
     body += _hoisted(rev.lines[len(invariant) + joints.nq + joints.nv :])
     body += [f"rq[{i}] = {_symbol_value(adj.get(x.name, 0.0))};" for i, x in enumerate(q)]
     body += [f"rv[{i}] = {_symbol_value(adj.get(x.name, 0.0))};" for i, x in enumerate(v)]
-    return _run_source(_RUN_VJP_BLOCK, invariant, {"STEP": step, "BODY": body}, joints, dtype)
+    return _run_source(_RUN_VJP_BLOCK, invariant, {"STEP": step, "BODY": body}, joints, dtype, harmonics)
 
 
-def _run_source(block: str, invariant: list, parts: dict, joints, dtype) -> str:
+def _run_source(block: str, invariant: list, parts: dict, joints, dtype, harmonics=None) -> str:
     text = block.replace("@ACCESS@", _ACCESS).replace("@INVARIANT@", "\n".join("  " + line for line in invariant))
     for key, lines in parts.items():
         text = text.replace(f"@{key}@", "\n".join("      " + line for line in lines))
-    text = text.replace("@NQ@", str(joints.nq)).replace("@NV@", str(joints.nv))
+    text = text.replace("@NQ@", str(joints.nq)).replace("@NV@", str(joints.nv)).replace("@NW@", str(work_count(harmonics)))
     prelude = _KERNEL.split("// the generated function of the states")[0]
     return prelude.replace("@COMMON@", COMMON_TEMPLATE.replace("@T@", SCALAR_TYPES[np.dtype(dtype)][0])) + text
 
@@ -369,8 +380,8 @@ def _field_program(tree, joints, derivative=None, harmonics=None) -> tuple:
     invariant = len(em.lines)
     q = _carried(em, "q", joints.nq, "sq")
     v = _carried(em, "v", joints.nv, "sv")
-    a, power = _stage_field(em, joints, operands, q, v, Sym("t", em), derivative)
-    outputs = list(qdot_scalars(joints, q, v)) + list(a) + [power]
+    a, powers = _stage_field(em, joints, operands, q, v, Sym("t", em), derivative)
+    outputs = list(qdot_scalars(joints, q, v)) + list(a) + powers
     return em, em.lines[:invariant], em.lines[invariant:], (q, v), outputs
 
 
@@ -397,7 +408,7 @@ def _projection(joints) -> tuple[list, list]:
     return forward, reverse
 
 
-def _adaptive_source(template: str, invariant: list, parts: dict, joints, dtype, tab) -> str:
+def _adaptive_source(template: str, invariant: list, parts: dict, joints, dtype, tab, harmonics=None) -> str:
     helpers, attempt = _ADAPTIVE_ATTEMPT.split("//@@ATTEMPT\n")
     text = template.replace("@HELPERS@", helpers).replace("@ATTEMPT@", attempt)
     dense = np.array(tab.dense)
@@ -407,7 +418,7 @@ def _adaptive_source(template: str, invariant: list, parts: dict, joints, dtype,
     parts = {**parts, "PROJECT": forward, "PROJECT_VJP": reverse}
     text = (text.replace("@S@", str(S)).replace("@D@", str(dense.shape[1])).replace("@A@", _c_array(A))
             .replace("@E@", _c_array(tab.e)).replace("@P@", _c_array(dense.tolist())).replace("@C@", _c_array(list(tab.c))))
-    return _run_source(text, invariant, parts, joints, dtype)
+    return _run_source(text, invariant, parts, joints, dtype, harmonics)
 
 
 def generate_adaptive(tree, joints, dtype, tab, harmonics=None) -> str:
@@ -415,7 +426,7 @@ def generate_adaptive(tree, joints, dtype, tab, harmonics=None) -> str:
     ``harmonics``: that of a Fourier-series joint torque (``None``: none)."""
     em, invariant, lines, _, outputs = _field_program(tree, joints, harmonics=harmonics)
     field = lines + [f"f[{i}] = {_symbol_value(x)};" for i, x in enumerate(outputs)]
-    return _adaptive_source(_ADAPTIVE_BLOCK, invariant, {"FIELD": field}, joints, dtype, tab)
+    return _adaptive_source(_ADAPTIVE_BLOCK, invariant, {"FIELD": field}, joints, dtype, tab, harmonics)
 
 
 def generate_adaptive_vjp(tree, joints, dtype, tab, harmonics=None) -> str:
@@ -431,4 +442,5 @@ def generate_adaptive_vjp(tree, joints, dtype, tab, harmonics=None) -> str:
     adj = adjoint_program(primal, active_values(primal, {"q", "v"}), pairs)
     body = _hoisted(rev.lines[len(invariant):])
     body += [f"r[{i}] = {_symbol_value(adj.get(x.name, 0.0))};" for i, x in enumerate(list(q) + list(v))]
-    return _adaptive_source(_ADAPTIVE_VJP_BLOCK, invariant, {"FIELD": field, "FIELD_VJP": body}, joints, dtype, tab)
+    return _adaptive_source(_ADAPTIVE_VJP_BLOCK, invariant, {"FIELD": field, "FIELD_VJP": body}, joints, dtype, tab,
+                            harmonics)

@@ -103,8 +103,8 @@ assert _RK4_WEIGHTS == (1.0, 2.0, 2.0, 1.0) and _RK4_DENOMINATOR == 6.0
 
 def rk4_scalars(field, joints, q: list, v: list, h, t0=None, t1=None) -> tuple:
     """One classical RK4 step of ``(q̇, v̇, ẇ) = (q̇(q, v), a, P)`` on lists of scalars, where
-    ``field(q, v, t) = (a, P)`` (``P``: the power integrated as work; ``t``: the stage's time,
-    ``None`` without ``t0``). Returns ``(q1, v1, k1q, k1v, k4q, k4v, (Δw, k1w, k4w))``, the
+    ``field(q, v, t) = (a, P)`` (``P``: the power integrated as work, or a list of powers each
+    integrated as its own work; ``t``: the stage's time, ``None`` without ``t0``). Returns ``(q1, v1, k1q, k1v, k4q, k4v, (Δw, k1w, k4w))``, the
     stage increments ``k = h·f`` being those of the first and last stage (the dense output's end
     slopes). The tableau is :data:`~jaxbody.backends.scalar.RK4_A`,
     :data:`~jaxbody.backends.scalar.RK4_B`; the stage times ``t0``, ``t0 + c_i h`` and ``t1``
@@ -113,7 +113,8 @@ def rk4_scalars(field, joints, q: list, v: list, h, t0=None, t1=None) -> tuple:
 
     def increment(q, v, t):
         a, power = field(q, v, t)
-        return [h * x for x in qdot_scalars(joints, q, v)], [h * x for x in a], h * power
+        work = [h * p for p in power] if isinstance(power, list) else h * power
+        return [h * x for x in qdot_scalars(joints, q, v)], [h * x for x in a], work
 
     def ahead(k, c):
         return [y + c * d for y, d in zip(q, k[0])], [y + c * d for y, d in zip(v, k[1])]
@@ -128,8 +129,17 @@ def rk4_scalars(field, joints, q: list, v: list, h, t0=None, t1=None) -> tuple:
     k3 = increment(*ahead(k2, RK4_A[2][1]), times[2])
     k4 = increment(*ahead(k3, RK4_A[3][2]), times[3])
     y1 = [[y + combine(a, b, c, d) for y, a, b, c, d in zip(y0, *ks)] for y0, *ks in zip((q, v), k1, k2, k3, k4)]
-    work = combine(k1[2], k2[2], k3[2], k4[2])
+    if isinstance(k1[2], list):
+        work = [combine(*ws) for ws in zip(k1[2], k2[2], k3[2], k4[2])]
+    else:
+        work = combine(k1[2], k2[2], k3[2], k4[2])
     return y1[0], y1[1], k1[0], k1[1], k4[0], k4[1], [work, k1[2], k4[2]]
+
+
+def work_count(harmonics) -> int:
+    """Works a whole-solve program integrates: the dampers', and a Fourier-series joint torque's
+    where it has one (``harmonics`` not ``None``)."""
+    return 1 if harmonics is None else 2
 
 
 def torque_size(nv: int, harmonics: int) -> int:

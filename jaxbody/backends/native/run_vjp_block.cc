@@ -11,7 +11,8 @@ static void vjp_block(const Inputs& in, int64_t b0, int n) {
   const U taken = ld(12, 1);
   for (int i = 0; i < @NQ@; ++i) aq[i] = ld(13, i);
   for (int i = 0; i < @NV@; ++i) av[i] = ld(14, i);
-  const U aw = ld(15, 0);
+  U aw[@NW@];
+  for (int j = 0; j < @NW@; ++j) aw[j] = ld(15, j);
   int64_t total = 0;
   for (int l = 0; l < n; ++l) total = int64_t(taken[l]) > total ? int64_t(taken[l]) : total;
   constexpr int KEPT = NS + 3;  // a kept step: its state, length and times

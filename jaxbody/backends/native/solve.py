@@ -7,6 +7,7 @@ from ..._types import Array, ArrayLike, Float
 from ...model import Model
 from .symbolic import parameter_vector
 from .build import compiled_kernel
+from .rk4 import work_count
 
 
 def torque_operand(torque, nv: int, dtype) -> tuple:
@@ -54,7 +55,8 @@ def rk4_rollout(
     (:class:`jaxbody.FourierTorque`'s fields) evaluated at each stage's time,
     the quaternions of ball and free joints renormalised after every step. A step whose result
     is not finite ends that trajectory there (its state is that step's); ``max_steps`` (``None``:
-    no bound) ends it after that many steps. ``work0``: the dampers' work at ``t0``; ``frozen``:
+    no bound) ends it after that many steps. ``work0``: the dampers' work at ``t0`` (with a
+    torque, the pair of the dampers' and the torque's works, each integrated); ``frozen``:
     take the steps without moving (as :func:`jaxbody.simulate` does for an input that failed
     its checks with ``throw=False``).
 
@@ -96,12 +98,18 @@ def _rollout_rows(model, q, v, t0, t1, dt0, max_steps, force, gravity, stiffness
     row = lambda x: jnp.reshape(x, (1, -1))  # noqa: E731
     coefficients, harmonics = torque_operand(torque, model.nv, dtype)
     return (row(q), row(v), row(force), row(parameter_vector(model)), row(gravity), coefficients,
-            row(stiffness), row(reference), row(damping), row(jnp.asarray(work0, dtype)), row(schedule)), harmonics
+            row(stiffness), row(reference), row(damping), work_row(work0, harmonics, dtype), row(schedule)), harmonics
+
+
+def work_row(work, harmonics, dtype):
+    """The works of a whole solve (or their cotangents) as a ``(1, n)`` row of the program's
+    :func:`.rk4.work_count` works, a scalar given for each."""
+    return jnp.broadcast_to(jnp.asarray(work, dtype), (work_count(harmonics),))[None]
 
 
 def _rollout_outputs(outs) -> tuple:
     q1, v1, w1, status = (o[0] for o in outs[:4])
-    return q1, v1, w1[0], status[0], status[1].astype(jnp.int32), status[2] > 0
+    return q1, v1, w1[0] if w1.shape[0] == 1 else w1, status[0], status[1].astype(jnp.int32), status[2] > 0
 
 
 def checkpoint_layout(model: Model, max_steps: int, checkpoints: int) -> tuple[int, int]:
@@ -145,5 +153,6 @@ def rk4_rollout_vjp(model: Model, q, v, t0, t1, dt0, max_steps: int, checkpoints
     row = lambda x: jnp.reshape(jnp.asarray(x, dtype), (1, -1))  # noqa: E731
     status = jnp.stack([jnp.zeros((), dtype), jnp.asarray(steps, dtype), jnp.zeros((), dtype)])
     kernel = compiled_kernel(model.tree, model.joints, False, np.dtype(dtype), "rk4_run_vjp", harmonics)
-    ct_q, ct_v = kernel.batched(*rows, row(saved), row(status), row(cotangent_q), row(cotangent_v), row(cotangent_work))
+    ct_q, ct_v = kernel.batched(*rows, row(saved), row(status), row(cotangent_q), row(cotangent_v),
+                                work_row(cotangent_work, harmonics, dtype))
     return ct_q[0], ct_v[0]
