@@ -130,7 +130,7 @@ def adaptive_solve(
     damping: Float[ArrayLike, " nv"] | None = None,
     torque: tuple | None = None,
     work0: ArrayLike = 0.0,
-    has_work: bool = False,
+    has_work: bool | tuple = False,
     frozen: ArrayLike = False,
     checkpoints: int | None = None,
 ) -> tuple:

@@ -16,9 +16,11 @@ static inline V stage_time(T c, V tp, V tn, V h) { return c == T(1) ? tn : tp + 
 // the loop's state after an attempt: a lane whose step was accepted (moved) takes its solution
 // yp, where its carried derivative was evaluated (ys, the last stage's input) and that
 // derivative (last); every active lane takes the controller's next times, error history, dtmin
-// flag, result code and step count
+// flag, result code and step count. Out of line: g++ 12 at -O2 miscompiled it inlined into the
+// one-lane (single-state) build, whose solves then rejected every step; one call per attempt
+// costs nothing beside its field evaluations
 template <int N>
-static inline void advance(I active, I moved, V* y, V* u, V* fs, const V* yp, const V* ys, const V* last, V& tprev,
+__attribute__((noinline)) static void advance(I active, I moved, V* y, V* u, V* fs, const V* yp, const V* ys, const V* last, V& tprev,
                            V tp, V& tnext, V tn, V& inv_prev, V inv_new, V& inv_prevprev, V prev_new, I& at_dtmin,
                            I at_new, I& code, I code_new, V& steps, V& accepted) {
   for (int i = 0; i < N; ++i) {
