@@ -206,8 +206,8 @@ class FourierTorque(Effect):
         cosine: ``b`` ``(nv, K)`` (default zeros).
         offset: ``c`` ``(nv,)`` (default zeros).
 
-    The formula is :func:`jaxbody.backends.scalar.fourier_series`. Also callable as a law
-    ``tau(t, q, v)``.
+    The formula is :func:`jaxbody.backends.scalar.fourier_series` (one sine and cosine per
+    evaluation, the harmonics by rotation). Also callable as a law ``tau(t, q, v)``.
     """
 
     frequency: Float[Array, ""]
