@@ -205,15 +205,12 @@ def _axis_angle(axis, angle):
 
 def fourier_series(t, omega, offset: Sequence, sine: Sequence, cosine: Sequence) -> list:
     """``c_i + Σ_{k=1..K} (a_ik sin(k ω t) + b_ik cos(k ω t))`` for each entry ``i`` (``offset``:
-    the ``c_i``; ``sine``, ``cosine``: each entry's ``K`` coefficients). One sine and cosine, of
-    ``ω t``; the higher harmonics by the angle-addition rotation ``(s, c)_{k+1} = (s_k c_1 + c_k s_1,
-    c_k c_1 − s_k s_1)`` (its rounding grows like ``k ε``). :class:`jaxbody.FourierTorque` runs it
-    on array columns, the native code generator on symbols: both compute it in this order."""
+    the ``c_i``; ``sine``, ``cosine``: each entry's ``K`` coefficients); one sine and cosine, the
+    harmonics by rotation ``(s, c)_{k+1} = (s_k c_1 + c_k s_1, c_k c_1 − s_k s_1)`` (rounding ~``k ε``).
+    :class:`jaxbody.FourierTorque` runs it on array columns, the code generator on symbols."""
     harmonics = len(sine[0]) if len(sine) else 0
-    waves = []
-    if harmonics:
-        s1, c1 = _sin(omega * t), _cos(omega * t)
-        waves.append((s1, c1))
+    waves = [(_sin(omega * t), _cos(omega * t))] if harmonics else []
+    s1, c1 = waves[0] if waves else (0.0, 0.0)
     for _ in range(1, harmonics):
         s, c = waves[-1]
         waves.append((s * c1 + c * s1, c * c1 - s * s1))
