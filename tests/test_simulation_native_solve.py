@@ -353,11 +353,13 @@ def _torque_scene(nv=3, harmonics=2, seed=3):
 def test_fourier_torque_native_solves_equal_the_stepped_solve(monkeypatch):
     """Gravity, springs, dampers and a Fourier-series torque, evaluated at each stage's time inside
     the one-call programs (from a start time that is not zero: the torque's phase): the RK4 and
-    Dopri5 solves (every field, the torque's work beside the dampers') equal diffrax's loop.
-    Their gradients: :func:`test_fourier_torque_gradients` (slow: the loop's compilation)."""
-    model, scene, _ = _torque_scene()
+    Dopri5 solves (every field, the torque's work beside the dampers') equal diffrax's loop, whose
+    RK4 steps are the native step program with the torque (``rk4_step``), and the RK4 solve equals
+    the four stages written in JAX on the vectorised kernel. Their gradients:
+    :func:`test_fourier_torque_gradients` (slow: the loop's compilation)."""
+    model, scene, torque = _torque_scene()
     calls = []
-    for name in ("rk4_rollout", "adaptive_solve"):
+    for name in ("rk4_rollout", "adaptive_solve", "rk4_step"):
         fn = getattr(native, name)
         monkeypatch.setattr(native, name, lambda *a, _fn=fn, **kw: calls.append(_fn.__name__) or _fn(*a, **kw))
     q0, v0 = _state(model, 4)
@@ -374,11 +376,13 @@ def test_fourier_torque_native_solves_equal_the_stepped_solve(monkeypatch):
     _stepped(monkeypatch)
     calls.clear()
     fixed_loop, adaptive_loop = run()
-    assert not calls
+    assert set(calls) == {"rk4_step"}, calls
     for key in ("num_steps", "num_accepted_steps", "num_rejected_steps"):
         assert int(adaptive.stats[key]) == int(adaptive_loop.stats[key]), key
     _leaves_close(fixed, fixed_loop, 1e-13)
     _leaves_close(adaptive, adaptive_loop, 1e-12)
+    stages = _solve(jb.scene(model, kernel="vectorised", planar=False, effects=[torque]), q0, v0, t0 + 0.1, t0=t0)
+    _leaves_close((fixed.q, fixed.v, fixed.work, fixed.t), (stages.q, stages.v, stages.work, stages.t), 1e-12)
 
 
 def test_fourier_torque_against_mujoco_qfrc_applied(models_dir):

@@ -235,8 +235,8 @@ class Kernel:
         # a whole solve's Fourier-series joint torque: its number of harmonics shapes the program
         self.harmonics = harmonics
         self.widths = result_widths(joints, mode, harmonics)
-        if harmonics is not None and not (mode.startswith("rk4_run") or mode.startswith("adaptive")):
-            raise ValueError(f"a Fourier-series joint torque is evaluated by the whole-solve programs only, not {mode!r}")
+        if harmonics is not None and not (mode in ("rk4", "rk4_run", "rk4_run_vjp") or mode.startswith("adaptive")):
+            raise ValueError(f"a Fourier-series joint torque is evaluated by the RK4 step and the whole solves, not {mode!r}")
         self.target = _handler(self.dtype)
         if mode == "rk4_run":
             self.source = generate_run(tree, joints, self.dtype, harmonics)
@@ -247,7 +247,7 @@ class Kernel:
         elif mode.startswith("adaptive_vjp:"):
             self.source = generate_adaptive_vjp(tree, joints, self.dtype, tableau(mode.split(":")[1]), harmonics)
         else:
-            self.source = generate(tree, joints, with_external, self.dtype, mode)
+            self.source = generate(tree, joints, with_external, self.dtype, mode, harmonics)
         self._addresses = {}  # built on the first call (traced), where a build error then shows
         self._batched = {}
         if mode in ("fd", "rk4", "energy", "rk4_run", "rk4_run_vjp") or mode.startswith("adaptive_vjp:"):

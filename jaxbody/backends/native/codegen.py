@@ -30,6 +30,9 @@ _STEP_SLOTS = {"q": 0, "v": 1, "f": 2, "p": 3, "g": 4, "ext": 5, "h": 6, "k": 7,
 # loads' slot ("ext") holds the coefficient row of a Fourier-series joint torque where they
 # have one (rk4.torque_size)
 _RUN_SLOTS = {"q": 0, "v": 1, "f": 2, "p": 3, "g": 4, "ext": 5, "k": 6, "r": 7, "d": 8, "w": 9, "s": 10}
+# the RK4 step with a Fourier-series joint torque ("rk4" only: its derivatives come from the step
+# written in JAX): the torque's coefficient row and the step's times (t0, t1) after the dampers
+_STEP_TORQUE_SLOTS = {"tq": 10, "tm": 11}
 # the energy program: the state, the model, gravity and the joint springs
 _ENERGY_SLOTS = {"q": 0, "v": 1, "p": 2, "g": 3, "k": 4, "r": 5}
 
@@ -51,7 +54,7 @@ def result_widths(joints, mode: str, harmonics=None) -> tuple:
         "fd": (nv,),
         "jvp": (nv,),
         "vjp": (nq, nv, nv),
-        "rk4": (nq, nv, nq, nv, nq, nv, 3),
+        "rk4": (nq, nv, nq, nv, nq, nv, 3 * nw),
         "rk4_jvp": (nq, nv, nq, nv, nq, nv, 3),
         "rk4_vjp": (nq, nv, nv),
         "energy": (3,),
@@ -131,7 +134,7 @@ def _acceleration(em, model, joints, q, v, f, g, ext, derivative):
     return [with_derivative(x, x + c) for x, c in zip(a0, correction)]
 
 
-def generate(tree, joints, with_external: bool, dtype, mode: str = "fd") -> str:
+def generate(tree, joints, with_external: bool, dtype, mode: str = "fd", harmonics=None) -> str:
     """C++ source of forward dynamics, or of one RK4 step, for this tree (parameters, gravity,
     loads as inputs).
 
@@ -139,7 +142,9 @@ def generate(tree, joints, with_external: bool, dtype, mode: str = "fd") -> str:
     ``(dq, dv, df)`` of the state and force (forward mode on the generated program);
     ``"vjp"`` the cotangents of ``(q, v, f)`` for a cotangent of the acceleration (reverse mode).
     ``"rk4"``, ``"rk4_jvp"``, ``"rk4_vjp"``: the same for one RK4 step of length ``h`` (an extra
-    input) with the force held over the step (:func:`rk4_scalars`: six results).
+    input) with the force held over the step (:func:`rk4_scalars`: six results). ``harmonics``
+    (``"rk4"`` only): a Fourier-series joint torque evaluated at the stages' times, its work a
+    second one (the last result: ``(Δw, k1w, k4w)`` of each work, work by work within each).
     """
     step = mode.startswith("rk4")
     if mode == "energy":
@@ -171,7 +176,18 @@ def generate(tree, joints, with_external: bool, dtype, mode: str = "fd") -> str:
             total, power = joint_force(joints, q, v, f, stiffness, reference, damping)
             return acceleration(q, v, total), power
 
-        outputs = list(rk4_scalars(field, joints, q, v, h))
+        times = (None, None)
+        if harmonics is not None:
+            torque = (input_scalars(em, "tq", torque_size(joints.nv, harmonics), _STEP_TORQUE_SLOTS["tq"]), harmonics)
+            times = tuple(input_scalars(em, "tm", 2, _STEP_TORQUE_SLOTS["tm"]))
+            operands = (model, f, g, stiffness, reference, damping, torque)
+
+            def field(q, v, t):  # noqa: F811 (the torque's field)
+                return _stage_field(em, joints, operands, q, v, t, derivative, ext)
+
+        outputs = list(rk4_scalars(field, joints, q, v, h, *times))
+        if harmonics is not None:
+            outputs[-1] = [x for part in outputs[-1] for x in part]
     else:
         outputs = [acceleration(q, v, f)]
     primal = list(em.ops)
@@ -253,7 +269,7 @@ def _run_operands(em: Emitter, tree, joints, harmonics=None):
     return model, f, g, stiffness, reference, damping, torque
 
 
-def _stage_field(em: Emitter, joints, operands, q: list, v: list, t, derivative=None) -> tuple:
+def _stage_field(em: Emitter, joints, operands, q: list, v: list, t, derivative=None, ext=None) -> tuple:
     """``(a, P)`` at one stage: the held force plus the torque at time ``t``, the springs and
     dampers, through forward dynamics; ``P`` the list of works' powers (:func:`.rk4.work_count`):
     the dampers', then the torque's ``τ·v``."""
@@ -267,7 +283,7 @@ def _stage_field(em: Emitter, joints, operands, q: list, v: list, t, derivative=
             power = power + ti * vi
         powers.append(power)
     total, power = joint_force(joints, q, v, f, stiffness, reference, damping)
-    return _acceleration(em, model, joints, q, v, total, g, None, derivative), [power] + powers
+    return _acceleration(em, model, joints, q, v, total, g, ext, derivative), [power] + powers
 
 
 def _run_step(em: Emitter, joints, operands, q: list, v: list, h, derivative=None, t0=None, t1=None) -> tuple:
