@@ -7,8 +7,8 @@ Five scenes, each from one initial state over a fixed span:
 * ``pendulum``: the chaotic double pendulum of the papers' Example 1 from the horizontal, 10 s;
   reference: the papers' closed-form equations of motion (eq. 15, absolute angles) integrated by
   scipy's DOP853 at rtol = atol = 1e-13;
-* ``panda``: the Panda arm under gravity with a smooth torque profile ``τ_i = A_i sin(2π f_i t)``,
-  5 s; reference: DOP853 at 1e-13 with MuJoCo's ``mj_forward`` as the vector field;
+* ``panda``: the Panda arm under gravity with a smooth torque profile ``τ_i = A_i sin(2π f_i t)``
+  (jaxbody: a :class:`jaxbody.FourierTorque`, ``benchmarks/_study_torque.py``), 5 s; reference: DOP853 at 1e-13 with MuJoCo's ``mj_forward`` as the vector field;
 * ``disk``: the rolling disk (Maggi equations, non-holonomic), 10 s; reference: jaxbody's Dopri8
   at 1e-13, its convergence shown by its distance to the run at 1e-12;
 * ``fourbar``: the four-bar linkage (a loop closure, holonomic), 10 s; reference as the disk's;
@@ -47,6 +47,7 @@ import time
 import warnings
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+from _study_torque import panda_torque, panda_torque_values  # noqa: E402
 from _common import (  # noqa: E402
     DOUBLE_PENDULUM_MJCF,
     RESULTS,
@@ -168,16 +169,10 @@ def fourbar_state():
     return np.zeros(3), np.array([2.0, w23[0] - 2.0, w23[1]])
 
 
-PANDA_AMPLITUDE = np.array([8.0, 8.0, 6.0, 6.0, 2.0, 2.0, 1.0])
-PANDA_FREQUENCY = np.array([0.5, 0.7, 0.9, 1.1, 1.3, 1.5, 1.7])
-
-
-class PandaTorque:
-    """``τ_i(t) = A_i sin(2π f_i t)``, a joint-space torque profile (a callable ``tau(t, q, v)``)."""
-
-    def __call__(self, t, q, v):
-        xp = jnp if isinstance(t, jax.Array) else np
-        return xp.asarray(PANDA_AMPLITUDE) * xp.sin(2 * np.pi * xp.asarray(PANDA_FREQUENCY) * t)
+def panda_tau(t, q, v):
+    """The study's torque profile in NumPy (:func:`_study_torque.panda_torque_values`), a ``tau(t, q, v)``
+    for MuJoCo's ``qfrc_applied``; jaxbody's scene has it as a :class:`jaxbody.FourierTorque`."""
+    return panda_torque_values(t)
 
 
 def panda_mjcf():
@@ -195,7 +190,7 @@ def scene_specs(quick: bool) -> dict:
     m = mujoco.MjModel.from_xml_string(xml)
     home = m.key("home").qpos.copy() if m.nkey else np.zeros(m.nq)
     specs["panda"] = dict(title="Panda arm, gravity and a torque profile", t1=5.0, xml=xml, q0=home, v0=np.zeros(m.nv),
-                          tau=PandaTorque(), reference="mj_forward", kind="robot arm, smooth forcing")
+                          tau=panda_tau, reference="mj_forward", kind="robot arm, smooth forcing")
     specs["disk"] = dict(title="rolling disk (non-holonomic, Maggi)", t1=10.0, xml=None, reference="dopri8",
                          kind="non-holonomic constraints")
     specs["fourbar"] = dict(title="four-bar linkage (loop closure)", t1=10.0, xml=fourbar_mjcf(), reference="dopri8",
@@ -218,7 +213,9 @@ def jb_scene(spec, name, dtype):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # what MuJoCo models that jaxbody does not is switched off here
         model = jb.from_mjcf(spec["xml"], dtype=dtype)
-    return jb.scene(model), spec["q0"].astype(dtype), spec["v0"].astype(dtype)
+    # the torque profile as an effect of the scene: the native one-call solves evaluate it
+    effects = [panda_torque(jb, dtype)] if spec.get("tau") is not None else []
+    return jb.scene(model, effects=effects), spec["q0"].astype(dtype), spec["v0"].astype(dtype)
 
 
 # ----------------------------------------------------------------------------- references
@@ -286,13 +283,12 @@ def _reference(spec, name, ts):
 def jb_solve_fn(scene, spec, solver, dtype, ts, max_steps, **fixed):
     """A compiled ``(q0, v0, knob) -> Solution`` where the knob is ``dt0`` (fixed step) or
     ``rtol = atol`` (adaptive); the knob is traced, so one compilation serves the sweep."""
-    tau = spec.get("tau")
     adaptive = solver not in FIXED
 
     @jax.jit
     def solve(q0, v0, knob):
         kw = dict(rtol=knob, atol=knob) if adaptive else dict(dt0=knob)
-        return jb.simulate(scene, q0, v0, jnp.asarray(spec["t1"], dtype), tau=tau, solver=solver, saveat=ts,
+        return jb.simulate(scene, q0, v0, jnp.asarray(spec["t1"], dtype), solver=solver, saveat=ts,
                            max_steps=max_steps, throw=False, **kw, **fixed)
 
     return solve

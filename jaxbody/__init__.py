@@ -133,3 +133,7 @@ def __getattr__(name):
     if name in _MOVED_MODULES:
         return _moved(f"jaxbody.{name}", _MOVED_MODULES[name].__name__, _MOVED_MODULES[name])
     raise AttributeError(f"module 'jaxbody' has no attribute {name!r}")
+
+
+# a joint torque as a finite Fourier series of time (the one-call native solves evaluate it)
+from .effects import FourierTorque as FourierTorque  # noqa: E402

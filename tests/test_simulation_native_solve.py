@@ -338,3 +338,127 @@ def test_adaptive_native_gradient_equals_the_stepped_solve(name, monkeypatch):
     reference = grad()
     _leaves_close(every_step, reference, 1e-9)
     _leaves_close(segments, reference, 1e-9)
+
+
+# ----------------------------------------------------------------------------- a Fourier-series torque
+def _torque_scene(nv=3, harmonics=2, seed=3):
+    """The chain (gravity, springs, dampers) with a Fourier-series joint torque of every kind of term."""
+    rng = np.random.default_rng(seed)
+    torque = jb.FourierTorque(0.9, sine=rng.standard_normal((nv, harmonics)), cosine=rng.standard_normal((nv, harmonics)),
+                              offset=rng.standard_normal(nv))
+    model = _models()["chain"]
+    return model, jb.scene(model, kernel="native", planar=False, effects=[torque]), torque
+
+
+def test_fourier_torque_native_solves_equal_the_stepped_solve(monkeypatch):
+    """Gravity, springs, dampers and a Fourier-series torque, evaluated at each stage's time inside
+    the one-call programs (from a start time that is not zero: the torque's phase): the RK4 and
+    Dopri5 solves (every field, the torque's work beside the dampers') equal diffrax's loop, whose
+    RK4 steps are the native step program with the torque (``rk4_step``), and the RK4 solve equals
+    the four stages written in JAX on the vectorised kernel. Their gradients:
+    :func:`test_fourier_torque_gradients` (slow: the loop's compilation)."""
+    model, scene, torque = _torque_scene()
+    calls = []
+    for name in ("rk4_rollout", "adaptive_solve", "rk4_step"):
+        fn = getattr(native, name)
+        monkeypatch.setattr(native, name, lambda *a, _fn=fn, **kw: calls.append(_fn.__name__) or _fn(*a, **kw))
+    q0, v0 = _state(model, 4)
+    t0 = 0.35
+
+    def run():
+        fixed = _solve(scene, q0, v0, t0 + 0.1, t0=t0)
+        adaptive = _adaptive(scene, q0, v0, "dopri5", t0 + 0.2, t0=t0, saveat=diffrax.SaveAt(ts=jnp.linspace(t0, t0 + 0.2, 4)))
+        return fixed, adaptive
+
+    fixed, adaptive = run()
+    assert sorted(set(calls)) == ["adaptive_solve", "rk4_rollout"], calls
+    assert abs(float(fixed.work["torque"][-1])) > 1e-2 and float(fixed.work["dampers"][-1]) < 0
+    _stepped(monkeypatch)
+    calls.clear()
+    fixed_loop, adaptive_loop = run()
+    assert set(calls) == {"rk4_step"}, calls
+    for key in ("num_steps", "num_accepted_steps", "num_rejected_steps"):
+        assert int(adaptive.stats[key]) == int(adaptive_loop.stats[key]), key
+    _leaves_close(fixed, fixed_loop, 1e-13)
+    _leaves_close(adaptive, adaptive_loop, 1e-12)
+    stages = _solve(jb.scene(model, kernel="vectorised", planar=False, effects=[torque]), q0, v0, t0 + 0.1, t0=t0)
+    _leaves_close((fixed.q, fixed.v, fixed.work, fixed.t), (stages.q, stages.v, stages.work, stages.t), 1e-12)
+
+
+def test_fourier_torque_against_mujoco_qfrc_applied(models_dir):
+    """The Panda arm with a Fourier-series torque: the scene's acceleration at a time and state
+    equals MuJoCo's ``mj_forward`` with the series, summed independently here, as
+    ``qfrc_applied``; a bad coefficient is refused naming its field."""
+    import mujoco
+
+    path = models_dir / "panda.xml"
+    model = jb.from_mjcf(str(path))
+    rng = np.random.default_rng(5)
+    f, a, b, c = 0.4, rng.standard_normal((model.nv, 3)), rng.standard_normal((model.nv, 3)), rng.standard_normal(model.nv)
+    torque = jb.FourierTorque(f, sine=a, cosine=b, offset=c)
+    scene = jb.scene(model, effects=[torque])
+    q = np.asarray(model.qpos0) + 0.3 * rng.standard_normal(model.nq)
+    v = rng.standard_normal(model.nv)
+    t = 1.37
+    k = np.arange(1, 4)
+    tau = c + a @ np.sin(k * 2 * np.pi * f * t) + b @ np.cos(k * 2 * np.pi * f * t)
+    np.testing.assert_allclose(np.asarray(torque(t)), tau, rtol=1e-13, atol=1e-13)
+    m = mujoco.MjModel.from_xml_path(str(path))
+    m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT | mujoco.mjtDisableBit.mjDSBL_CONSTRAINT
+                              | mujoco.mjtDisableBit.mjDSBL_ACTUATION)
+    d = mujoco.MjData(m)
+    d.qpos[:], d.qvel[:], d.qfrc_applied[:] = q, v, tau
+    mujoco.mj_forward(m, d)
+    acc = jax.jit(lambda t, q, v: scene.evaluate(t, q, v)[0])(t, jnp.asarray(q), jnp.asarray(v))
+    assert float(np.max(np.abs(np.asarray(acc) - d.qacc))) <= 1e-9 * max(1.0, float(np.max(np.abs(d.qacc))))
+    with pytest.raises(ValueError, match="torque: sine has 6 rows, expected one per DoF"):
+        jb.scene(model, effects=[jb.FourierTorque(f, sine=a[:6])])
+    with pytest.raises(ValueError, match=r"torque: cosine has shape \(7, 2\), expected \(7, 3\)"):
+        jb.FourierTorque(f, sine=a, cosine=b[:, :2])
+    with pytest.raises(ValueError, match="torque: offset is not finite"):
+        jb.FourierTorque(f, sine=a, offset=np.full(model.nv, np.inf))
+    with pytest.raises(ValueError, match="torque: frequency must be a scalar"):
+        jb.FourierTorque(np.ones(2), sine=a)
+
+
+@pytest.mark.slow  # the step-by-step gradients' compilation
+def test_fourier_torque_gradients(monkeypatch):
+    """With a Fourier-series torque, the gradients with respect to the initial state through the
+    native reverse sweeps (the torque's stage times recomputed and replayed) equal diffrax's loop:
+    RK4 (the torque's work in the loss) and Dopri5 (states saved inside the steps); the gradient
+    with respect to the torque's coefficients (diffrax's loop) against central differences."""
+    model, scene, torque = _torque_scene()
+    q0, v0 = _state(model, 4)
+    calls = []
+    for name in ("rk4_rollout_vjp", "adaptive_solve_vjp"):
+        fn = getattr(native, name)
+        monkeypatch.setattr(native, name, lambda *a, _fn=fn, **kw: calls.append(_fn.__name__) or _fn(*a, **kw))
+
+    def fixed(q, v):
+        sol = _solve(scene, q, v, 0.45, t0=0.35, max_steps=20)
+        return jnp.sum(jnp.sin(sol.q[-1])) + jnp.sum(sol.v[-1] ** 2) + 3.0 * sol.work["torque"][-1]
+
+    def adaptive(q, v, scene=scene):
+        sol = _adaptive(scene, q, v, "dopri5", 0.3, t0=0.1, saveat=diffrax.SaveAt(ts=jnp.linspace(0.1, 0.3, 5)),
+                        max_steps=100)
+        return jnp.sum(jnp.arange(1.0, 6.0)[:, None] * jnp.sin(sol.q)) + jnp.sum(sol.v_final ** 2) \
+            + jnp.sum(sol.work["torque"])
+
+    grads = [jax.jit(jax.grad(f, argnums=(0, 1)))(q0, v0) for f in (fixed, adaptive)]
+    assert sorted(set(calls)) == ["adaptive_solve_vjp", "rk4_rollout_vjp"], calls
+    _stepped(monkeypatch)
+    for f, g in zip((fixed, adaptive), grads):
+        _leaves_close(g, jax.jit(jax.grad(f, argnums=(0, 1)))(q0, v0), 1e-10)
+    monkeypatch.setenv("JAXBODY_NATIVE_SOLVE", "1")
+
+    def of_sine(sine):
+        t = eqx.tree_at(lambda x: x.sine, torque, sine)
+        return adaptive(q0, v0, jb.scene(model, kernel="native", planar=False, effects=[t]))
+
+    g = jax.jit(jax.grad(of_sine))(torque.sine)
+    eps = 1e-6
+    basis = jnp.eye(torque.sine.size).reshape(-1, *torque.sine.shape)
+    values = jax.jit(jax.vmap(of_sine))(jnp.concatenate([torque.sine + eps * basis, torque.sine - eps * basis]))
+    fd = ((values[: basis.shape[0]] - values[basis.shape[0]:]) / (2 * eps)).reshape(torque.sine.shape)
+    assert float(jnp.max(jnp.abs(g))) > 1e-3
+    assert float(jnp.max(jnp.abs(g - fd))) <= 1e-6 * max(1.0, float(jnp.max(jnp.abs(fd))))

@@ -57,6 +57,7 @@ __all__ = [
     "adjoint_applies",
     "bias_and_mass",
     "energies",
+    "fourier_series",
     "inverse_dynamics",
     "inverse_dynamics_vjp",
     "ltdl_factor",
@@ -222,6 +223,26 @@ def _axis_angle(axis, angle):
         (t * x * y + s * z, 1.0 + t * (y * y - n2), t * y * z - s * x),
         (t * x * z - s * y, t * y * z + s * x, 1.0 + t * (z * z - n2)),
     )
+
+
+def fourier_series(t, omega, offset: Sequence, sine: Sequence, cosine: Sequence) -> list:
+    """``c_i + Σ_{k=1..K} (a_ik sin(k ω t) + b_ik cos(k ω t))`` for each entry ``i`` (``offset``:
+    the ``c_i``; ``sine``, ``cosine``: each entry's ``K`` coefficients); one sine and cosine, the
+    harmonics by rotation ``(s, c)_{k+1} = (s_k c_1 + c_k s_1, c_k c_1 − s_k s_1)`` (rounding ~``k ε``).
+    :class:`jaxbody.FourierTorque` runs it on array columns, the code generator on symbols."""
+    harmonics = len(sine[0]) if len(sine) else 0
+    waves = [(_sin(omega * t), _cos(omega * t))] if harmonics else []
+    s1, c1 = waves[0] if waves else (0.0, 0.0)
+    for _ in range(1, harmonics):
+        s, c = waves[-1]
+        waves.append((s * c1 + c * s1, c * c1 - s * s1))
+    out = []
+    for c, a, b in zip(offset, sine, cosine):
+        total = c
+        for (s, co), ak, bk in zip(waves, a, b):
+            total = total + ak * s + bk * co
+        out.append(total)
+    return out
 
 
 def scalars(x) -> list:

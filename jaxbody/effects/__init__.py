@@ -6,6 +6,7 @@ from .forces import (
     Actuation as Actuation,
     BodyLoads as BodyLoads,
     ControlSignal as ControlSignal,
+    FourierTorque as FourierTorque,
     Gravity as Gravity,
     JointDampers as JointDampers,
     JointSprings as JointSprings,

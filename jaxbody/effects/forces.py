@@ -1,4 +1,5 @@
-"""Ready effects: gravity, joint springs and dampers, actuation, body loads, moving support.
+"""Ready effects: gravity, joint springs and dampers, actuation, a Fourier-series joint torque,
+body loads, moving support.
 
 Each is a small :class:`~jaxbody.effects.Effect`. The path-dependent kinematics (spatial tree
 or planar absolute angles) is the scene's business: an effect asks the scene for the
@@ -18,6 +19,7 @@ import numpy as np
 
 from .._types import Array, Float
 from .._util import is_concrete
+from ..backends.scalar import fourier_series
 from ..kernels import spring_displacements
 from ._base import Effect, EffectContext
 
@@ -27,6 +29,7 @@ __all__ = [
     "JointDampers",
     "Actuation",
     "ControlSignal",
+    "FourierTorque",
     "BodyLoads",
     "SupportMotion",
 ]
@@ -184,6 +187,80 @@ class Actuation(Effect):
             raise ValueError(
                 f"actuation: tau(t, q, v) returned shape {getattr(out, 'shape', type(out))}, expected ({scene.nv},)"
             )
+
+
+class FourierTorque(Effect):
+    """A joint torque given as a finite Fourier series of time, in the layout of ``v``:
+
+    ``τ_i(t) = c_i + Σ_{k=1..K} (a_ik sin(k ω t) + b_ik cos(k ω t))``, ``ω = 2π f``
+
+    (the excitation trajectories of robot identification: smooth, periodic, band-limited).
+    Unlike an :class:`Actuation` law, its form is known, so the native kernel's one-call
+    solves evaluate it inside the generated program at each stage's time (a scene of gravity,
+    joint springs and dampers and this torque keeps the one-call RK4 and adaptive solves);
+    ``grad`` reaches every coefficient. Its power ``τ·v`` is integrated as work.
+
+    Args:
+        frequency: the fundamental frequency ``f`` in Hz (a scalar).
+        sine: ``a`` ``(nv, K)``, the sine coefficients of harmonics ``1 … K``.
+        cosine: ``b`` ``(nv, K)`` (default zeros).
+        offset: ``c`` ``(nv,)`` (default zeros).
+
+    The formula is :func:`jaxbody.backends.scalar.fourier_series` (one sine and cosine per
+    evaluation, the harmonics by rotation). Also callable as a law ``tau(t, q, v)``.
+    """
+
+    frequency: Float[Array, ""]
+    sine: Float[Array, "nv harmonics"]
+    cosine: Float[Array, "nv harmonics"]
+    offset: Float[Array, " nv"]
+    name: ClassVar[str] = "torque"
+
+    def __init__(self, frequency, sine=None, cosine=None, offset=None):
+        given = [x for x in (sine, cosine) if x is not None]
+        if not given and offset is None:
+            raise ValueError("torque: give sine and/or cosine coefficients (nv, K), or an offset (nv,)")
+        ref = jnp.asarray(given[0]) if given else None
+        nv = ref.shape[0] if ref is not None and ref.ndim == 2 else np.shape(offset)[0] if np.ndim(offset) == 1 else None
+        for field, x in (("sine", sine), ("cosine", cosine)):
+            if x is not None and (np.ndim(x) != 2 or (ref is not None and np.shape(x) != ref.shape)):
+                want = "(nv, K)" if ref is None or ref.ndim != 2 else str(tuple(ref.shape))
+                raise ValueError(f"torque: {field} has shape {np.shape(x)}, expected {want} (a row per DoF, a column per harmonic)")
+        if offset is not None and (np.ndim(offset) != 1 or (nv is not None and np.shape(offset)[0] != nv)):
+            raise ValueError(f"torque: offset has shape {np.shape(offset)}, expected ({nv},) (one per DoF)")
+        if np.ndim(frequency) != 0:
+            raise ValueError(f"torque: frequency must be a scalar (Hz), got shape {np.shape(frequency)}")
+        dtype = jnp.result_type(*(jnp.asarray(x) for x in (frequency, sine, cosine, offset) if x is not None), float)
+        shape = ref.shape if ref is not None else (nv, 0)
+        self.frequency = jnp.asarray(frequency, dtype)
+        self.sine = jnp.zeros(shape, dtype) if sine is None else jnp.asarray(sine, dtype)
+        self.cosine = jnp.zeros(shape, dtype) if cosine is None else jnp.asarray(cosine, dtype)
+        self.offset = jnp.zeros(shape[0], dtype) if offset is None else jnp.asarray(offset, dtype)
+        for field in ("frequency", "sine", "cosine", "offset"):
+            value = getattr(self, field)
+            if is_concrete(value) and not np.all(np.isfinite(np.asarray(value))):
+                bad = np.argwhere(~np.isfinite(np.atleast_1d(np.asarray(value))))[0]
+                raise ValueError(f"torque: {field} is not finite (NaN or inf) at index {tuple(int(i) for i in bad)}")
+
+    @property
+    def harmonics(self) -> int:
+        """``K``, the number of harmonics (static: it shapes the generated programs)."""
+        return int(self.sine.shape[1])
+
+    def __call__(self, t, q=None, v=None):
+        """``τ(t)`` ``(nv,)``."""
+        omega = 2 * np.pi * self.frequency
+        columns = lambda x: [[x[:, k] for k in range(self.harmonics)]]  # noqa: E731
+        return fourier_series(t, omega, [self.offset], columns(self.sine), columns(self.cosine))[0]
+
+    def generalized_force(self, ctx: EffectContext):
+        return jnp.asarray(self(ctx.t), ctx.v.dtype)
+
+    def check(self, scene):
+        for field in ("sine", "cosine", "offset"):
+            n = getattr(self, field).shape[0]
+            if n != scene.nv:
+                raise ValueError(f"torque: {field} has {n} rows, expected one per DoF ({scene.nv})")
 
 
 class BodyLoads(Effect):

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 from ..backends import native, unrolled
 from .._types import Array, Float
 from ..data import compute_data
-from ..effects import Actuation, EffectContext, Gravity, JointDampers, JointSprings
+from ..effects import Actuation, EffectContext, FourierTorque, Gravity, JointDampers, JointSprings
 from ..backends import acceleration, resolve_kernel
 from ..kernels import bias_forces, body_wrench_force, kinetic_energy, mass_matrix, uniform_field_force
 from ..linalg import solve_spd
@@ -41,13 +41,13 @@ class SpatialScene(ModelScene):
         """Whether the vector field can run :func:`jaxbody.backends.acceleration` directly.
 
         True without constraints when every effect is a uniform gravity field or a joint-space
-        force (springs, dampers, actuation): those need no kinematics of their own, gravity
+        force (springs, dampers, actuation, a Fourier-series torque): those need no kinematics of their own, gravity
         enters the kernel as the ground's acceleration, and nothing is computed twice. Body
         loads, support motion, constraints and effects of unknown kind go through the shared
         kinematics of :meth:`context`.
         """
         return self.constraints is None and all(
-            isinstance(e, (Gravity, JointSprings, JointDampers, Actuation)) for e in self.effects
+            isinstance(e, (Gravity, JointSprings, JointDampers, Actuation, FourierTorque)) for e in self.effects
         )
 
     @property

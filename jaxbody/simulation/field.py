@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..effects import Gravity, JointDampers, JointSprings
+from ..effects import FourierTorque, Gravity, JointDampers, JointSprings
 
 __all__ = ["VectorField", "native_field"]
 
@@ -50,30 +50,37 @@ class VectorField(eqx.Module):
         return out
 
 
-def native_field(scene, y0, slots):
+def native_field(scene, y0, slots, timed: bool = False):
     """``(model, gravity, passive)`` where the native RK4 programs compute ``scene``'s vector field
     on the state ``y0 = (q, v[, w])`` exactly (:func:`jaxbody.backends.native.rk4_step`'s arguments):
     the native kernel, and effects that are a uniform gravity field, joint dampers and joint
-    springs (nothing that depends on time); a work vector ``w`` must hold the dampers' work
-    alone (``slots``). ``None`` otherwise."""
+    springs, and with ``timed`` (the whole-solve programs, which know each stage's time) a
+    :class:`jaxbody.FourierTorque` (``passive["torque"]``; its work is a second one: the
+    whole-solve programs integrate both). ``None`` otherwise."""
     # the augmented state of a backsolve adjoint is a 4-tuple: its field is not the scene's
     if not isinstance(y0, tuple) or len(y0) not in (2, 3):
         return None
     effects = scene.effects
-    # the native programs hard-code these three effects; anything else (actuation, loads, a
+    # the native programs hard-code these effects; anything else (actuation, loads, another
     # time-dependent field) would be silently dropped, so it keeps the step-by-step field
-    if not scene.is_direct() or not all(isinstance(e, (Gravity, JointDampers, JointSprings)) for e in effects):
+    known = (Gravity, JointDampers, JointSprings) + ((FourierTorque,) if timed else ())
+    if not scene.is_direct() or not all(isinstance(e, known) for e in effects):
         return None
     springs = [e for e in effects if isinstance(e, JointSprings)]
     dampers = [e for e in effects if isinstance(e, JointDampers)]
-    if len(springs) > 1 or len(dampers) > 1 or scene.direct_kernel() != "native":
+    torques = [e for e in effects if isinstance(e, FourierTorque)]
+    if len(springs) > 1 or len(dampers) > 1 or len(torques) > 1 or scene.direct_kernel() != "native":
         return None
-    if len(y0) == 3 and (not slots or not dampers or len(slots) != 1):
-        return None  # a work vector whose slots are not the dampers' alone
+    # the native programs integrate the dampers' work and a torque's: those must be the scene's works
+    if len(y0) == 3 and not slots:
+        return None
     gravity = scene.gravity_vector(y0[1].dtype)  # None: no field (rk4_step's default)
     passive = {}
     if springs:
         passive.update(stiffness=springs[0].stiffness, reference=springs[0].reference)
     if dampers:
         passive.update(damping=dampers[0].damping)
+    if torques:
+        t = torques[0]
+        passive.update(torque=(t.frequency, t.sine, t.cosine, t.offset))
     return scene.system, gravity, passive

@@ -3,7 +3,7 @@
 A fixed-step ``"rk4"`` solve on the native kernel that keeps only its end state
 (``saveat=SaveAt(t1=True)``), and an adaptive ``"tsit5"``, ``"dopri5"`` or ``"dopri8"`` solve under
 diffrax's ``PIDController`` that saves its end state and/or requested times, of a scene of
-gravity, joint springs and joint dampers, without an event, run as one native call
+gravity, joint springs, joint dampers and a Fourier-series joint torque, without an event, run as one native call
 (:func:`jaxbody.backends.native.rk4_rollout`, :func:`jaxbody.backends.native.adaptive_solve`) instead of
 diffrax's loop. They apply only there because only there does the native program compute
 exactly what the loop would: the same field (:func:`jaxbody.simulation.field.native_field`), the
@@ -26,6 +26,7 @@ from jax.custom_derivatives import SymbolicZero
 
 # the module, not its functions: read at call time, so a test can intercept the native calls
 from ..backends import native
+from ..effects import FourierTorque, JointDampers
 from .adjoint import default_checkpoints
 from .field import native_field
 from .solution import RESULTS
@@ -91,19 +92,48 @@ def native_solve_applies(scene, y0, solver, controller, saveat, adjoint, meter, 
         return False
     if method != "rk4" and (main.ts is None and not main.t1 or main.ts is not None and jnp.ndim(main.ts) != 1):
         return False
-    # the adaptive program's work slot is one number (the dampers' work)
-    if method != "rk4" and len(y0) == 3 and jnp.size(y0[2]) != 1:
+    plan = native_field(scene, y0, slots, timed=True)
+    if plan is None:
         return False
-    return native_field(scene, y0, slots) is not None
+    # the adaptive program's error norm counts the works it carries: they must be the whole work
+    # vector (a phased run's vector may hold other phases' works too)
+    carried = sorted(s for s in _work_layout(scene, y0, slots, plan[2]) if s is not None)
+    return method == "rk4" or len(y0) == 2 or carried == list(range(jnp.size(y0[2])))
+
+
+def _work_layout(scene, y0, slots, passive) -> tuple:
+    """For each work the native programs integrate (the dampers', then a Fourier-series torque's
+    where the scene has one: :func:`jaxbody.backends.native.rk4_rollout`), its index in the work
+    vector ``y0[2]``, or ``None`` where the solve does not carry it."""
+    names = (JointDampers.name,) + ((FourierTorque.name,) if "torque" in passive else ())
+    if len(y0) != 3:
+        return (None,) * len(names)
+    own = scene.work_names  # the scene's works, in the order of slots
+    return tuple(slots[own.index(n)] if n in own else None for n in names)
+
+
+def _works(w, layout, dtype):
+    """The native program's works from a work vector ``w`` (zero where not carried)."""
+    return jnp.stack([w[s] if s is not None else jnp.zeros((), dtype) for s in layout])
+
+
+def _work_vector(like, layout, works):
+    """``like`` (a work vector, or rows of them) with the native program's ``works`` (last axis) set
+    in their slots."""
+    for j, s in enumerate(layout):
+        if s is not None:
+            like = like.at[..., s].set(works[..., j].astype(like.dtype))
+    return like
 
 
 def _native_arguments(scene, y0, valid, slots) -> tuple:
     """``(model, keyword arguments)`` of :func:`jaxbody.backends.native.rk4_rollout` for a solve of ``scene``
     from ``y0`` (:func:`jaxbody.simulation.field.native_field`)."""
-    model, gravity, passive = native_field(scene, y0, slots)
+    model, gravity, passive = native_field(scene, y0, slots, timed=True)
     # a member that failed the boundary check stays frozen, as under the stepped field
     kwargs = dict(gravity=gravity, frozen=False if valid is None else ~valid, **passive)
-    return model, kwargs
+    layout = _work_layout(scene, y0, slots, passive)
+    return model, dict(kwargs, work0=_works(y0[2] if len(y0) == 3 else None, layout, y0[0].dtype)), layout
 
 
 def _forward_in_time(t0, t1, dt0):
@@ -112,11 +142,11 @@ def _forward_in_time(t0, t1, dt0):
     return eqx.error_if(t1, (t1 - t0) * dt0 < 0, "simulate: t1 must not be before t0 (a fixed-step solve runs forward)")
 
 
-def _native_outputs(y0, t1, slots, q, v, w, t, steps, failed) -> tuple:
+def _native_outputs(y0, t1, layout, q, v, w, t, steps, failed) -> tuple:
     """:func:`jaxbody.simulation.solve.integrate`'s outputs for a solve that saves the end state
     alone, from the native solve's results."""
     dtype = y0[0].dtype
-    ys = (q[None], v[None]) + ((y0[2].at[slots[0]].set(w.astype(dtype))[None],) if len(y0) == 3 else ())
+    ys = (q[None], v[None]) + ((_work_vector(y0[2], layout, jnp.atleast_1d(w))[None],) if len(y0) == 3 else ())
     ts = t.astype(dtype)[None]
     stats = {"num_steps": steps, "num_accepted_steps": steps, "num_rejected_steps": jnp.asarray(0)}  # as diffrax gives it
     # the codes diffrax's loop would give: stopping short of t1 means the step budget ran out
@@ -128,20 +158,19 @@ def _native_outputs(y0, t1, slots, q, v, w, t, steps, failed) -> tuple:
 def native_solve(scene, y0, t0, t1, dt0, valid, max_steps, slots):
     """The solve of :func:`jaxbody.simulation.solve.integrate` as one native call per batch
     (:func:`jaxbody.backends.native.rk4_rollout`): ``(ts, ys, tf, yf, stats, result)``."""
-    model, kwargs = _native_arguments(scene, y0, valid, slots)
-    w0 = y0[2][slots[0]] if len(y0) == 3 else 0.0
+    model, kwargs, layout = _native_arguments(scene, y0, valid, slots)
     t1 = _forward_in_time(t0, t1, dt0)
-    out = native.rk4_rollout(model, y0[0], y0[1], t0, t1, dt0, max_steps, work0=w0, **kwargs)
-    return _native_outputs(y0, t1, slots, *out)
+    out = native.rk4_rollout(model, y0[0], y0[1], t0, t1, dt0, max_steps, **kwargs)
+    return _native_outputs(y0, t1, layout, *out)
 
 
 def _adaptive_arguments(scene, y0, valid, slots, controller):
-    model, kwargs = _native_arguments(scene, y0, valid, slots)
-    kwargs.update(work0=y0[2][0] if len(y0) == 3 else 0.0, has_work=len(y0) == 3, control=native.Control.of(controller))
-    return model, kwargs
+    model, kwargs, layout = _native_arguments(scene, y0, valid, slots)
+    kwargs.update(has_work=tuple(s is not None for s in layout), control=native.Control.of(controller))
+    return model, kwargs, layout
 
 
-def _adaptive_outputs(y0, t1, saveat, q, v, w, status, saved) -> tuple:
+def _adaptive_outputs(y0, t1, saveat, layout, q, v, w, status, saved) -> tuple:
     """:func:`jaxbody.simulation.solve.integrate`'s outputs from the adaptive program's: the
     requested times (unsaved ones ``inf``, as diffrax pads them) and/or the end state."""
     dtype = y0[0].dtype
@@ -149,9 +178,12 @@ def _adaptive_outputs(y0, t1, saveat, q, v, w, status, saved) -> tuple:
     nq, nv = y0[0].shape[0], y0[1].shape[0]
 
     def state(rows):
-        return (rows[:, :nq], rows[:, nq : nq + nv]) + ((rows[:, nq + nv :].astype(dtype),) if len(y0) == 3 else ())
+        if len(y0) == 2:
+            return rows[:, :nq], rows[:, nq : nq + nv]
+        works = _work_vector(jnp.zeros((rows.shape[0], y0[2].shape[0]), dtype), layout, rows[:, nq + nv :])
+        return rows[:, :nq], rows[:, nq : nq + nv], works
 
-    final = jnp.concatenate([q, v, jnp.reshape(w, (1,))])[None]
+    final = jnp.concatenate([q, v, jnp.atleast_1d(w)])[None]
     tf = status[0].astype(dtype)[None]
     yf = state(final)
     if main.ts is None:
@@ -175,11 +207,11 @@ def _adaptive_outputs(y0, t1, saveat, q, v, w, status, saved) -> tuple:
 def native_adaptive_solve(scene, y0, t0, t1, dt0, valid, max_steps, slots, method, controller, saveat):
     """The solve of :func:`jaxbody.simulation.solve.integrate` by an embedded pair as one native
     call per batch (:func:`jaxbody.backends.native.adaptive_solve`): ``(ts, ys, tf, yf, stats, result)``."""
-    model, kwargs = _adaptive_arguments(scene, y0, valid, slots, controller)
+    model, kwargs, layout = _adaptive_arguments(scene, y0, valid, slots, controller)
     t1 = _forward_in_time(t0, t1, 1.0)
     ts = _main_save(saveat).ts
     out = native.adaptive_solve(model, method, y0[0], y0[1], t0, t1, dt0=dt0, max_steps=max_steps, ts=ts, **kwargs)
-    return _adaptive_outputs(y0, t1, saveat, *out)
+    return _adaptive_outputs(y0, t1, saveat, layout, *out)
 
 
 def native_adaptive_reverse(adjoint, max_steps, slots, y0, method):
@@ -197,19 +229,20 @@ def native_adaptive_reverse(adjoint, max_steps, slots, y0, method):
     def forward(rest, y0):
         scene, t0, t1, dt0, valid, _, controller, _, saveat = rest
         main = _main_save(saveat)
-        model, kwargs = _adaptive_arguments(scene, y0, valid, slots, controller)
+        model, kwargs, layout = _adaptive_arguments(scene, y0, valid, slots, controller)
         t1 = _forward_in_time(t0, t1, 1.0)
         *out, saved = native.adaptive_solve(model, method, y0[0], y0[1], t0, t1, dt0=dt0, max_steps=max_steps,
                                             ts=main.ts, checkpoints=checkpoints, **kwargs)
         # residuals are arrays: the rest (the controller's norm, the solver) is held here
         dynamic, static = eqx.partition(rest, eqx.is_array)
         held.append(static)
-        return _adaptive_outputs(y0, t1, saveat, *out), (dynamic, y0, saved, out[3])
+        return _adaptive_outputs(y0, t1, saveat, layout, *out), (dynamic, y0, saved, out[3])
 
     def backward(residuals, cotangents):
         dynamic, y0, saved, status = residuals
         scene, t0, t1, dt0, valid, _, controller, _, saveat = eqx.combine(dynamic, held[-1])
         main = _main_save(saveat)
+        model, kwargs, layout = _adaptive_arguments(scene, y0, valid, slots, controller)
         _, ys, _, yf, _, _ = cotangents
         ys = [_instantiate(a) for a in ys]
         ct = [_instantiate(b)[0] for b in yf]
@@ -220,15 +253,17 @@ def native_adaptive_reverse(adjoint, max_steps, slots, y0, method):
             if main.t1:  # the end state saved after the requested times
                 ct = [a[-1] + b for a, b in zip(ys, ct)]
                 ys = [a[:-1] for a in ys]
-            rows = list(ys[:2]) + [ys[2] if len(ys) == 3 else jnp.zeros((ys[0].shape[0], 1), ys[0].dtype)]
-            ct_saved = jnp.concatenate(rows, axis=1)
-        model, kwargs = _adaptive_arguments(scene, y0, valid, slots, controller)
-        work = ct[2][0] if len(y0) == 3 else 0.0
+            zeros = jnp.zeros((ys[0].shape[0],), ys[0].dtype)
+            works = [ys[2][:, s] if s is not None else zeros for s in layout]
+            ct_saved = jnp.concatenate(list(ys[:2]) + [jnp.stack(works, axis=1)], axis=1)
+        work = _works(ct[2], layout, y0[0].dtype) if len(y0) == 3 else 0.0
         ct_q, ct_v, ct_w = native.adaptive_solve_vjp(model, method, y0[0], y0[1], t0, t1, dt0=dt0, max_steps=max_steps,
                                                      checkpoints=checkpoints, saved=saved, status=status,
                                                      cotangent_q=ct[0], cotangent_v=ct[1], cotangent_work=work,
                                                      ts=main.ts, cotangent_saved=ct_saved, **kwargs)
-        return (ct_q, ct_v) + ((jnp.reshape(ct_w, (1,)).astype(y0[2].dtype),) if len(y0) == 3 else ())
+        if len(y0) == 2:
+            return ct_q, ct_v
+        return ct_q, ct_v, _work_vector(jnp.zeros_like(y0[2]), layout, jnp.atleast_1d(ct_w))
 
     return forward, backward
 
@@ -290,20 +325,19 @@ def native_reverse(adjoint, max_steps, slots, y0):
 
     def forward(rest, y0):
         scene, t0, t1, dt0, valid = rest[:5]
-        model, kwargs = _native_arguments(scene, y0, valid, slots)
-        w0 = y0[2][slots[0]] if len(y0) == 3 else 0.0
+        model, kwargs, layout = _native_arguments(scene, y0, valid, slots)
         t1 = _forward_in_time(t0, t1, dt0)
-        *out, saved = native.rk4_rollout_checkpointed(model, y0[0], y0[1], t0, t1, dt0, max_steps, checkpoints, work0=w0,
-                                               **kwargs)
-        return _native_outputs(y0, t1, slots, *out), (rest[:5], y0, saved, out[4])
+        *out, saved = native.rk4_rollout_checkpointed(model, y0[0], y0[1], t0, t1, dt0, max_steps, checkpoints, **kwargs)
+        return _native_outputs(y0, t1, layout, *out), (rest[:5], y0, saved, out[4])
 
     def backward(residuals, cotangents):
         (scene, t0, t1, dt0, valid, *_), y0, saved, steps = residuals
         _, ys, _, yf, _, _ = cotangents
         # the end state is both the saved point and the final state
         ct = [_instantiate(a)[0] + _instantiate(b)[0] for a, b in zip(ys, yf)]
-        model, kwargs = _native_arguments(scene, y0, valid, slots)
-        work = ct[2][slots[0]] if len(y0) == 3 else 0.0
+        model, kwargs, layout = _native_arguments(scene, y0, valid, slots)
+        work = _works(ct[2], layout, y0[0].dtype) if len(y0) == 3 else 0.0
+        kwargs.pop("work0")
         ct_q, ct_v = native.rk4_rollout_vjp(model, y0[0], y0[1], t0, t1, dt0, max_steps, checkpoints, saved, steps, ct[0],
                                      ct[1], work, **kwargs)
         return (ct_q, ct_v) + ((ct[2],) if len(y0) == 3 else ())

@@ -25,6 +25,7 @@ from .._types import Array
 from ..kinematics import normalize_qpos
 from ..scene import Scene
 from ..backends.scalar import RK4_A, RK4_B, RK4_C
+from ..effects import FourierTorque, JointDampers
 from .delegating import DelegatingSolver, for_adjoint
 from .field import VectorField, native_field
 from .solution import RESULTS
@@ -127,8 +128,9 @@ def _native_rk4_step(terms, args, y0):
     """The whole RK4 step as one native call (:func:`jaxbody.backends.native.rk4_step`), where it computes
     exactly what the four stages would: ``simulate``'s own vector field (not the augmented one of
     a backsolve adjoint) for a scene whose forward dynamics is the native kernel and whose
-    effects are gravity, joint dampers and joint springs: nothing that depends on time.
-    Returns ``(t0, t1, y0) -> (y1, k)`` or ``None``."""
+    effects are gravity, joint dampers and joint springs, and a Fourier-series joint torque (the
+    one thing that depends on time, evaluated at the stages' times) where diffrax's term says
+    which way time runs. Returns ``(t0, t1, y0) -> (y1, k)`` or ``None``."""
     # diffrax wraps the term (for the direction of time, and a backsolve adjoint wraps it again):
     # look for simulate's own field among the term's nodes; the augmented state of an adjoint
     # solve is then ruled out by its shape (native_field)
@@ -140,10 +142,15 @@ def _native_rk4_step(terms, args, y0):
     if not (isinstance(args, tuple) and len(args) == 2 and isinstance(args[0], Scene)):
         return None
     scene, valid = args
-    plan = native_field(scene, y0, slots)
+    # diffrax integrates in time times its direction (its wrapping term's): a torque needs the time
+    wraps = [x for x in jax.tree.leaves(terms, is_leaf=lambda x: hasattr(x, "direction") and hasattr(x, "term"))
+             if hasattr(x, "direction") and hasattr(x, "term")]
+    plan = native_field(scene, y0, slots, timed=len(wraps) == 1)
     if plan is None:
         return None
     model, gravity, passive = plan
+    if "torque" in passive:
+        return _native_timed_step(terms, wraps[0].direction, scene, valid, y0, slots, plan)
 
     def fused(t0, t1, y0):
         # the field does not depend on time: the step is the term's control (t1 - t0, signed)
@@ -156,6 +163,36 @@ def _native_rk4_step(terms, args, y0):
             k = k + (jnp.stack([zeros.at[slot].set(work[1].astype(w0.dtype)), zeros.at[slot].set(work[2].astype(w0.dtype))]),)
         if valid is not None:
             # a member that failed the boundary check stays frozen, as under VectorField
+            y1 = jax.tree.map(lambda a, b: jnp.where(valid, a, b), y1, y0)
+            k = jax.tree.map(lambda a: jnp.where(valid, a, 0.0), k)
+        return y1, k
+
+    return fused
+
+
+def _native_timed_step(terms, direction, scene, valid, y0, slots, plan):
+    """:func:`_native_rk4_step` for a scene with a Fourier-series torque: the step's times in the
+    scene's time (diffrax's times its direction), the torque's work and the dampers' each added
+    to its own slot of the work vector."""
+    model, gravity, passive = plan
+    own = scene.work_names  # the scene's works in the order of slots
+    names = (JointDampers.name, FourierTorque.name)  # the native step's works (jaxbody.backends.native.rk4_step)
+    layout = [slots[own.index(n)] if len(y0) == 3 and n in own else None for n in names]
+
+    def fused(t0, t1, y0):
+        q1, v1, k1q, k1v, k4q, k4v, work = native.rk4_step(model, y0[0], y0[1], terms.contr(t0, t1), gravity=gravity,
+                                                           t0=t0 * direction, t1=t1 * direction, **passive)
+        y1, k = (q1, v1), (jnp.stack([k1q, k4q]), jnp.stack([k1v, k4v]))
+        if len(y0) == 3:
+            w0 = y0[2]
+            w1, ka, kb = w0, jnp.zeros_like(w0), jnp.zeros_like(w0)
+            for j, slot in enumerate(layout):
+                if slot is not None:  # work = (Δw, k1w, k4w) of each work, work by work within each
+                    w1 = w1.at[slot].add(work[j].astype(w0.dtype))
+                    ka = ka.at[slot].set(work[2 + j].astype(w0.dtype))
+                    kb = kb.at[slot].set(work[4 + j].astype(w0.dtype))
+            y1, k = y1 + (w1,), k + (jnp.stack([ka, kb]),)
+        if valid is not None:
             y1 = jax.tree.map(lambda a, b: jnp.where(valid, a, b), y1, y0)
             k = jax.tree.map(lambda a: jnp.where(valid, a, 0.0), k)
         return y1, k

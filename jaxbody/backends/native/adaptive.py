@@ -14,6 +14,8 @@ import numpy as np
 from ..._types import Array, ArrayLike, Float
 from ...model import Model
 from .build import compiled_kernel
+from .rk4 import work_count
+from .solve import torque_operand, work_row
 from .symbolic import parameter_vector
 from .tableaux import METHODS
 
@@ -48,19 +50,34 @@ class Control:
 _FIRST_STEP = 0.01
 
 
-def adaptive_checkpoint_layout(model: Model, max_steps: int, checkpoints: int) -> tuple[int, int]:
+def _harmonics(torque):
+    return None if torque is None else int(jnp.shape(torque[1])[-1])
+
+
+def adaptive_checkpoint_layout(model: Model, max_steps: int, checkpoints: int, works: int = 1) -> tuple[int, int]:
     """``(every, width)``: accepted steps between the reverse sweep's checkpoints for a budget of
     ``max_steps`` steps kept in ``checkpoints`` slots, and the width of their row (each: the
-    state, the carried derivative and where it was evaluated, and the loop's seven scalars)."""
+    state with its ``works`` works, the carried derivative and where it was evaluated, and the
+    loop's seven scalars)."""
     every = max(1, -(-max_steps // max(checkpoints, 1)))
     slots = max_steps // every + 1
-    n = model.nq + model.nv + 1
+    n = model.nq + model.nv + works
     return every, slots * (3 * n + 7)
 
 
+def _work_bits(has_work, harmonics) -> float:
+    """The works the solve carries as bits (bit ``j``: work ``j`` integrated and in the error
+    norm): ``has_work`` a bool for all of them, or one per work."""
+    flags = (has_work,) * work_count(harmonics) if isinstance(has_work, bool) else tuple(has_work)
+    if len(flags) != work_count(harmonics):
+        raise ValueError(f"has_work: expected {work_count(harmonics)} flags (one per work), got {len(flags)}")
+    return float(sum(1 << j for j, f in enumerate(flags) if f))
+
+
 def _rows(model, method, q, v, t0, t1, dt0, max_steps, control, ts, force, gravity, stiffness, reference, damping,
-          work0, has_work, frozen, every):
-    """The operands of the ``"adaptive:…"`` programs, as ``(1, n)`` rows."""
+          torque, work0, has_work, frozen, every):
+    """The operands of the ``"adaptive:…"`` programs, as ``(1, n)`` rows, the number of save
+    times and the torque's harmonics (:func:`.solve.torque_operand`)."""
     from equinox.internal import prevbefore
 
     if method not in METHODS:
@@ -74,6 +91,7 @@ def _rows(model, method, q, v, t0, t1, dt0, max_steps, control, ts, force, gravi
     stiffness = jnp.zeros(model.joints.n_joint, dtype) if stiffness is None else jnp.asarray(stiffness, dtype)
     reference = jnp.zeros(model.nq, dtype) if reference is None else jnp.asarray(reference, dtype)
     damping = jnp.zeros(model.nv, dtype) if damping is None else jnp.asarray(damping, dtype)
+    coefficients, harmonics = torque_operand(torque, model.nv, dtype)
     # diffrax's loop: a next step ending within 100 ulp below t1 ends at t1
     t1_floor = t1
     for _ in range(100):
@@ -83,13 +101,14 @@ def _rows(model, method, q, v, t0, t1, dt0, max_steps, control, ts, force, gravi
     n_ts = 0 if ts is None else int(ts.shape[-1])
     fields = [t0, t1, t1_floor, np.inf if max_steps is None else max_steps, _FIRST_STEP if dt0 is None else dt0, c.rtol, c.atol,
               c.pcoeff, c.icoeff, c.dcoeff, 0.0 if c.dtmin is None else c.dtmin, np.inf if c.dtmax is None else c.dtmax,
-              float(c.force_dtmin), c.factormin, c.factormax, c.safety, order, frozen, float(has_work), every,
+              float(c.force_dtmin), c.factormin, c.factormax, c.safety, order, frozen, _work_bits(has_work, harmonics), every,
               float(c.dtmin is not None), n_ts]
     schedule = jnp.stack([jnp.asarray(x, dtype) for x in fields])
     ts_row = jnp.zeros((1,), dtype) if ts is None else jnp.asarray(ts, dtype)
     row = lambda x: jnp.reshape(x, (1, -1))  # noqa: E731
-    return (row(q), row(v), row(force), row(parameter_vector(model)), row(gravity), jnp.zeros((1, 1), dtype),
-            row(stiffness), row(reference), row(damping), row(jnp.asarray(work0, dtype)), row(schedule), row(ts_row)), n_ts
+    return (row(q), row(v), row(force), row(parameter_vector(model)), row(gravity), coefficients,
+            row(stiffness), row(reference), row(damping), work_row(work0, harmonics, dtype), row(schedule),
+            row(ts_row)), n_ts, harmonics
 
 
 def adaptive_solve(
@@ -109,8 +128,9 @@ def adaptive_solve(
     stiffness: Float[ArrayLike, " n_joint"] | None = None,
     reference: Float[ArrayLike, " nq"] | None = None,
     damping: Float[ArrayLike, " nv"] | None = None,
+    torque: tuple | None = None,
     work0: ArrayLike = 0.0,
-    has_work: bool = False,
+    has_work: bool | tuple = False,
     frozen: ArrayLike = False,
     checkpoints: int | None = None,
 ) -> tuple:
@@ -120,7 +140,9 @@ def adaptive_solve(
     controller's settings; ``dt0``: the first step (``None``: 0.01, as diffrax's loop takes it);
     ``max_steps``: the budget of attempted steps; ``ts``: times (non-decreasing) at which the state
     is saved from the dense output. The field is that of :func:`rk4_step` (``force``,
-    ``gravity``, springs and dampers held); ``w`` integrates the dampers' power ``P`` and enters
+    ``gravity``, springs and dampers held) plus a Fourier-series joint torque ``torque =
+    (frequency, sine, cosine, offset)`` at each stage's time (:func:`rk4_rollout`; with it ``w``
+    is the pair of the dampers' and the torque's works, and ``has_work`` may be one flag per work); ``w`` integrates the dampers' power ``P`` and enters
     the error norm where ``has_work``. Quaternions are renormalised after each step (not inside
     the error estimate), as :func:`jaxbody.simulate`'s guard does. ``frozen``: the state does
     not move (its field is zero), as ``simulate`` does for an input that failed its checks.
@@ -133,36 +155,37 @@ def adaptive_solve(
     """
     every = 1
     if checkpoints is not None:
-        every, width = adaptive_checkpoint_layout(model, max_steps, checkpoints)
-    rows, n_ts = _rows(model, method, q, v, t0, t1, dt0, max_steps, control, ts, force, gravity, stiffness, reference,
-                       damping, work0, has_work, frozen, every)
-    kernel = compiled_kernel(model.tree, model.joints, False, np.dtype(model.body_pos.dtype), f"adaptive:{method}")
-    n = model.nq + model.nv + 1
+        every, width = adaptive_checkpoint_layout(model, max_steps, checkpoints, work_count(_harmonics(torque)))
+    rows, n_ts, harmonics = _rows(model, method, q, v, t0, t1, dt0, max_steps, control, ts, force, gravity, stiffness,
+                                  reference, damping, torque, work0, has_work, frozen, every)
+    kernel = compiled_kernel(model.tree, model.joints, False, np.dtype(model.body_pos.dtype), f"adaptive:{method}",
+                             harmonics)
+    n = model.nq + model.nv + work_count(harmonics)
     widths = kernel.widths + (max(n_ts * n, 1),) + ((width,) if checkpoints is not None else ())
     outs = kernel.batched_with(widths)(*rows)
     q1, v1, w1, status, ys = (o[0] for o in outs[:5])
     saved = jnp.where(jnp.arange(n_ts, dtype=status.dtype)[:, None] < status[5], ys[: n_ts * n].reshape(n_ts, n), jnp.inf)
-    result = (q1, v1, w1[0], status, saved)
+    result = (q1, v1, w1[0] if w1.shape[0] == 1 else w1, status, saved)
     return result + ((outs[5][0],) if checkpoints is not None else ())
 
 
 def adaptive_solve_vjp(model: Model, method: str, q, v, t0, t1, control: Control, dt0, max_steps: int, checkpoints: int,
                        saved, status, cotangent_q, cotangent_v, cotangent_work=0.0, force=None, *, ts=None,
-                       cotangent_saved=None, gravity=None, stiffness=None, reference=None, damping=None, work0=0.0,
-                       has_work=False, frozen=False):
+                       cotangent_saved=None, gravity=None, stiffness=None, reference=None, damping=None, torque=None,
+                       work0=0.0, has_work=False, frozen=False):
     """Reverse mode of :func:`adaptive_solve` with respect to the initial ``(q, v, w)``, in one
     native call: the accepted steps replayed from the checkpoints ``saved`` (:func:`adaptive_solve`
     with ``checkpoints``) and reversed through the field's generated reverse-mode program, the
     step sizes held (diffrax, too, stops the gradient through the controller). ``cotangent_*``:
     of the final state and work, and of the states saved at ``ts`` (``(n_ts, nq + nv + 1)``;
     through each step's dense output). Returns the cotangents of ``(q, v, w)``."""
-    every, _ = adaptive_checkpoint_layout(model, max_steps, checkpoints)
-    rows, n_ts = _rows(model, method, q, v, t0, t1, dt0, max_steps, control, ts, force, gravity, stiffness, reference,
-                       damping, work0, has_work, frozen, every)
+    every, _ = adaptive_checkpoint_layout(model, max_steps, checkpoints, work_count(_harmonics(torque)))
+    rows, n_ts, harmonics = _rows(model, method, q, v, t0, t1, dt0, max_steps, control, ts, force, gravity, stiffness,
+                                  reference, damping, torque, work0, has_work, frozen, every)
     dtype = model.body_pos.dtype
     row = lambda x: jnp.reshape(jnp.asarray(x, dtype), (1, -1))  # noqa: E731
     ct_saved = jnp.zeros((1,), dtype) if cotangent_saved is None or n_ts == 0 else cotangent_saved
-    kernel = compiled_kernel(model.tree, model.joints, False, np.dtype(dtype), f"adaptive_vjp:{method}")
+    kernel = compiled_kernel(model.tree, model.joints, False, np.dtype(dtype), f"adaptive_vjp:{method}", harmonics)
     ct_q, ct_v, ct_w = kernel.batched(*rows[:11], row(saved), row(status), row(cotangent_q), row(cotangent_v),
-                                      row(cotangent_work), rows[11], row(ct_saved))
-    return ct_q[0], ct_v[0], ct_w[0, 0]
+                                      work_row(cotangent_work, harmonics, dtype), rows[11], row(ct_saved))
+    return ct_q[0], ct_v[0], ct_w[0, 0] if ct_w.shape[1] == 1 else ct_w[0]

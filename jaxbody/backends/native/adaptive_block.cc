@@ -2,39 +2,38 @@
 // A whole adaptive solve per block of states (jaxbody.backends.native.adaptive): each lane its
 // own times, step size, controller state, step counts, saved times and result code; the block
 // ends when every lane is done. The steps and the saves are diffrax's (see adaptive_attempt.cc).
-static inline V vabs(V x) { return x < T(0) ? -x : x; }
-static inline V vpow(V x, T p) {
-  if (p == T(0)) return V{} + T(1);  // diffrax leaves a zero coefficient's factor out
-  V r;
-  for (int l = 0; l < W; ++l) r[l] = std::pow(x[l], p);
-  return r;
-}
+@HELPERS@
 
 static void adaptive_block(const Inputs& in, int64_t b0, int n) {
 @ACCESS@
 @INVARIANT@
-  constexpr int NQ = @NQ@, NV = @NV@, N = NQ + NV + 1, S = @S@, D = @D@;
+  constexpr int NQ = @NQ@, NV = @NV@, NW = @NW@, N = NQ + NV + NW, S = @S@, D = @D@;
   static const T A[S][S] = @A@;
   static const T E[S] = @E@;
   static const T P[S][D] = @P@;
+  static const T C[S] = @C@;
   // the schedule (operand 10): per lane, or the same for all (flags: lane 0's)
   const U t0 = ld(10, 0), t1 = ld(10, 1), t1_floor = ld(10, 2), max_steps = ld(10, 3), dt0 = ld(10, 4);
   const U rtol = ld(10, 5), atol = ld(10, 6), dtmin = ld(10, 10), dtmax = ld(10, 11);
   const T pcoeff = ld(10, 7)[0], icoeff = ld(10, 8)[0], dcoeff = ld(10, 9)[0], order = ld(10, 16)[0];
-  const bool force_dtmin = ld(10, 12)[0] != T(0), has_work = ld(10, 18)[0] != T(0), has_dtmin = ld(10, 20)[0] != T(0);
+  const bool force_dtmin = ld(10, 12)[0] != T(0), has_dtmin = ld(10, 20)[0] != T(0);
+  // the works the solve carries (bit j: the program's work j, the powers of the field in order)
+  const int64_t works = int64_t(ld(10, 18)[0]);
+  auto tracked = [works](int j) { return ((works >> j) & 1) != 0; };
   const T factormin = ld(10, 13)[0], factormax = ld(10, 14)[0], safety = ld(10, 15)[0];
   const I frozen = ld(10, 17) != T(0);
   const int64_t every = int64_t(ld(10, 19)[0]), n_ts = int64_t(ld(10, 21)[0]);
   const T c1 = (icoeff + pcoeff + dcoeff) / order, c2 = -(pcoeff + T(2) * dcoeff) / order, c3 = dcoeff / order;
-  const int count = NQ + NV + (has_work ? 1 : 0);
-  // the field (q̇, a, P) at a state of N values (q, v, w); a frozen lane (an input that failed
-  // simulate's checks) has none, and without work the last slot stays put
-  auto evaluate = [&](const U* sy, U* f) {
+  int count = NQ + NV;
+  for (int j = 0; j < NW; ++j) count += tracked(j) ? 1 : 0;
+  // the field (q̇, a, P) at time t and a state of N values (q, v, w); a frozen lane (an input that
+  // failed simulate's checks) has none, and a work the solve does not carry stays put
+  auto evaluate = [&](const U t, const U* sy, U* f) {
     const U* sq = sy;
     const U* sv = sy + NQ;
 @FIELD@
     for (int i = 0; i < N; ++i) f[i] = frozen ? U{} : f[i];
-    if (!has_work) f[N - 1] = U{};
+    for (int j = 0; j < NW; ++j) f[NQ + NV + j] = tracked(j) ? f[NQ + NV + j] : U{};
   };
   auto project = [&](U* x) {
 @PROJECT@
@@ -42,8 +41,8 @@ static void adaptive_block(const Inputs& in, int64_t b0, int n) {
   U y[N], fs[N], k[S][N], ys[N], yp[N];
   for (int i = 0; i < NQ; ++i) y[i] = ld(0, i);
   for (int i = 0; i < NV; ++i) y[NQ + i] = ld(1, i);
-  y[N - 1] = ld(9, 0);
-  evaluate(y, fs);
+  for (int j = 0; j < NW; ++j) y[NQ + NV + j] = ld(9, j);
+  evaluate(t0, y, fs);
   U dt = dt0;
   dt = dt < dtmax ? dt : dtmax;
   if (has_dtmin) dt = dt > dtmin ? dt : dtmin;
@@ -100,19 +99,8 @@ static void adaptive_block(const Inputs& in, int64_t b0, int n) {
         ++saved[l];
       }
     }
-    for (int i = 0; i < N; ++i) {
-      y[i] = moved ? yp[i] : y[i];
-      u[i] = moved ? ys[i] : u[i];
-      fs[i] = moved ? k[S - 1][i] : fs[i];
-    }
-    tprev = active ? tp : tprev;
-    tnext = active ? tn : tnext;
-    inv_prev = active ? inv_new : inv_prev;
-    inv_prevprev = active ? prev_new : inv_prevprev;
-    at_dtmin = active ? at_new : at_dtmin;
-    code = active ? code_new : code;
-    steps = active ? steps + T(1) : steps;
-    accepted = moved ? accepted + T(1) : accepted;
+    advance<N>(active, moved, y, u, fs, yp, ys, k[S - 1], tprev, tp, tnext, tn, inv_prev, inv_new, inv_prevprev, prev_new,
+               at_dtmin, at_new, code, code_new, steps, accepted);
     rejected = (active & (keep == 0)) ? rejected + T(1) : rejected;
     if (store)
       for (int l = 0; l < n; ++l)
@@ -120,7 +108,7 @@ static void adaptive_block(const Inputs& in, int64_t b0, int n) {
   }
   for (int i = 0; i < NQ; ++i) st(0, i, y[i]);
   for (int i = 0; i < NV; ++i) st(1, i, y[NQ + i]);
-  st(2, 0, y[N - 1]);
+  for (int j = 0; j < NW; ++j) st(2, j, y[NQ + NV + j]);
   U nsaved;
   for (int l = 0; l < W; ++l) nsaved[l] = T(saved[l < n ? l : 0]);
   st(3, 0, tprev);

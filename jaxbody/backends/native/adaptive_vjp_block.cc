@@ -8,26 +8,24 @@
 // the field's generated reverse-mode program. The first stage of a step is the last stage of
 // the step before (first same as last): its cotangent goes back to that step's solution
 // before renormalisation (`pend`).
-static inline V vabs(V x) { return x < T(0) ? -x : x; }
-static inline V vpow(V x, T p) {
-  if (p == T(0)) return V{} + T(1);
-  V r;
-  for (int l = 0; l < W; ++l) r[l] = std::pow(x[l], p);
-  return r;
-}
+@HELPERS@
 
 #include <memory>
 static void adaptive_vjp_block(const Inputs& in, int64_t b0, int n) {
 @ACCESS@
 @INVARIANT@
-  constexpr int NQ = @NQ@, NV = @NV@, N = NQ + NV + 1, S = @S@, D = @D@;
+  constexpr int NQ = @NQ@, NV = @NV@, NW = @NW@, N = NQ + NV + NW, S = @S@, D = @D@;
   static const T A[S][S] = @A@;
   static const T E[S] = @E@;
   static const T P[S][D] = @P@;
+  static const T C[S] = @C@;
   const U t1 = ld(10, 1), t1_floor = ld(10, 2), max_steps = ld(10, 3);
   const U rtol = ld(10, 5), atol = ld(10, 6), dtmin = ld(10, 10), dtmax = ld(10, 11);
   const T pcoeff = ld(10, 7)[0], icoeff = ld(10, 8)[0], dcoeff = ld(10, 9)[0], order = ld(10, 16)[0];
-  const bool force_dtmin = ld(10, 12)[0] != T(0), has_work = ld(10, 18)[0] != T(0), has_dtmin = ld(10, 20)[0] != T(0);
+  const bool force_dtmin = ld(10, 12)[0] != T(0), has_dtmin = ld(10, 20)[0] != T(0);
+  // the works the solve carries (bit j: the program's work j, the powers of the field in order)
+  const int64_t works = int64_t(ld(10, 18)[0]);
+  auto tracked = [works](int j) { return ((works >> j) & 1) != 0; };
   const T factormin = ld(10, 13)[0], factormax = ld(10, 14)[0], safety = ld(10, 15)[0];
   const I frozen = ld(10, 17) != T(0);
   const int64_t every = int64_t(ld(10, 19)[0]), n_ts = int64_t(ld(10, 21)[0]);
@@ -37,16 +35,17 @@ static void adaptive_vjp_block(const Inputs& in, int64_t b0, int n) {
   const T* ct_saved = in.x[17];
   const int64_t ct_stride = in.s[17];
   const T c1 = (icoeff + pcoeff + dcoeff) / order, c2 = -(pcoeff + T(2) * dcoeff) / order, c3 = dcoeff / order;
-  const int count = NQ + NV + (has_work ? 1 : 0);
-  auto evaluate = [&](const U* sy, U* f) {
+  int count = NQ + NV;
+  for (int j = 0; j < NW; ++j) count += tracked(j) ? 1 : 0;
+  auto evaluate = [&](const U t, const U* sy, U* f) {
     const U* sq = sy;
     const U* sv = sy + NQ;
 @FIELD@
     for (int i = 0; i < N; ++i) f[i] = frozen ? U{} : f[i];
-    if (!has_work) f[N - 1] = U{};
+    for (int j = 0; j < NW; ++j) f[NQ + NV + j] = tracked(j) ? f[NQ + NV + j] : U{};
   };
   // cotangents of (q, v) at sy for cotangents lf of the field (q̇, a, P)
-  auto evaluate_vjp = [&](const U* sy, const U* lf, U* r) {
+  auto evaluate_vjp = [&](const U t, const U* sy, const U* lf, U* r) {
     const U* sq = sy;
     const U* sv = sy + NQ;
 @FIELD_VJP@
@@ -63,11 +62,11 @@ static void adaptive_vjp_block(const Inputs& in, int64_t b0, int n) {
   U lam[N], pend[N];
   for (int i = 0; i < NQ; ++i) lam[i] = ld(13, i);
   for (int i = 0; i < NV; ++i) lam[NQ + i] = ld(14, i);
-  lam[N - 1] = ld(15, 0);
+  for (int j = 0; j < NW; ++j) lam[NQ + NV + j] = ld(15, j);
   for (int i = 0; i < N; ++i) pend[i] = U{};
   int64_t total = 0;
   for (int l = 0; l < n; ++l) total = int64_t(taken[l]) > total ? int64_t(taken[l]) : total;
-  constexpr int CK = 3 * N + 7, KEPT = 3 * N + 4;
+  constexpr int CK = 3 * N + 7, KEPT = 3 * N + 5;
   std::unique_ptr<V[]> kept(new V[every * KEPT]);
   U y[N], fs[N], u[N], k[S][N], ys[N], yp[N], Y[S][N], lk[S][N], ly[N], r[N];
   for (int64_t seg = (total - 1) / every; seg >= 0 && total > 0; --seg) {
@@ -106,6 +105,7 @@ static void adaptive_vjp_block(const Inputs& in, int64_t b0, int n) {
         for (int i = 0; i < N; ++i) row[i][l] = y[i][l], row[N + i][l] = u[i][l], row[2 * N + i][l] = fs[i][l];
         row[3 * N][l] = h[l];
         row[3 * N + 1][l] = tprev[l];
+        row[3 * N + 4][l] = tnext[l];
         // the saves this step made (as the solve makes them)
         const int ll = l < n ? l : n - 1;
         const T* trow = ts + (b0 + ll) * ts_stride;
@@ -113,26 +113,15 @@ static void adaptive_vjp_block(const Inputs& in, int64_t b0, int n) {
         while (saved[l] < n_ts && trow[saved[l]] <= tnext[l]) ++saved[l];
         row[3 * N + 3][l] = T(saved[l]);
       }
-      for (int i = 0; i < N; ++i) {
-        y[i] = moved ? yp[i] : y[i];
-        u[i] = moved ? ys[i] : u[i];
-        fs[i] = moved ? k[S - 1][i] : fs[i];
-      }
-      tprev = active ? tp : tprev;
-      tnext = active ? tn : tnext;
-      inv_prev = active ? inv_new : inv_prev;
-      inv_prevprev = active ? prev_new : inv_prevprev;
-      at_dtmin = active ? at_new : at_dtmin;
-      code = active ? code_new : code;
-      steps = active ? steps + T(1) : steps;
-      accepted = moved ? accepted + T(1) : accepted;
+      advance<N>(active, moved, y, u, fs, yp, ys, k[S - 1], tprev, tp, tnext, tn, inv_prev, inv_new, inv_prevprev, prev_new,
+                 at_dtmin, at_new, code, code_new, steps, accepted);
     }
     int64_t last = 0;
     for (int l = 0; l < n; ++l) last = int64_t(end[l]) > last ? int64_t(end[l]) : last;
     for (int64_t rr = last - 1; rr >= first; --rr) {
       const I active = (U{} + T(rr)) < end;
       const V* row = &kept[(rr - first) * KEPT];
-      const U h = row[3 * N];
+      const U h = row[3 * N], tp = row[3 * N + 1], tn = row[3 * N + 4];
       for (int i = 0; i < N; ++i) y[i] = row[i], u[i] = row[N + i], k[0][i] = row[2 * N + i];
       for (int s = 1; s < S; ++s) {
         for (int i = 0; i < N; ++i) {
@@ -140,7 +129,7 @@ static void adaptive_vjp_block(const Inputs& in, int64_t b0, int n) {
           for (int j = 0; j < s; ++j) acc += A[s][j] * k[j][i];
           Y[s][i] = y[i] + acc * h;
         }
-        evaluate(Y[s], k[s]);
+        evaluate(stage_time(C[s], tp, tn, h), Y[s], k[s]);
       }
       // the solution is the last stage's input, renormalised
       for (int i = 0; i < N; ++i) ly[i] = lam[i];
@@ -170,13 +159,13 @@ static void adaptive_vjp_block(const Inputs& in, int64_t b0, int n) {
       }
       for (int s = S - 1; s >= 1; --s) {
         if (s < S - 1) {
-          evaluate_vjp(Y[s], lk[s], r);
+          evaluate_vjp(stage_time(C[s], tp, tn, h), Y[s], lk[s], r);
           for (int i = 0; i < NQ + NV; ++i) ly[i] = r[i];
-          ly[N - 1] = U{};
+          for (int i = NQ + NV; i < N; ++i) ly[i] = U{};
         } else if (dense) {
           // the last stage's input is the solution (its cotangent so far) and the field there
           // feeds the saved states
-          evaluate_vjp(Y[s], lk[s], r);
+          evaluate_vjp(stage_time(C[s], tp, tn, h), Y[s], lk[s], r);
           for (int i = 0; i < NQ + NV; ++i) ly[i] += r[i];
         }
         // this stage's input: y0 + (Σⱼ aₛⱼ fⱼ) h
@@ -190,7 +179,7 @@ static void adaptive_vjp_block(const Inputs& in, int64_t b0, int n) {
         }
       }
       // the first stage was the field at u (the step before's solution before renormalisation)
-      evaluate_vjp(u, lk[0], r);
+      evaluate_vjp(tp, u, lk[0], r);
       for (int i = 0; i < N; ++i) {
         const U pn = i < NQ + NV ? r[i] : U{};
         lam[i] = active ? ly0[i] : lam[i];
@@ -201,7 +190,7 @@ static void adaptive_vjp_block(const Inputs& in, int64_t b0, int n) {
   // the first step's first stage was the field at the initial state itself
   for (int i = 0; i < NQ; ++i) st(0, i, lam[i] + pend[i]);
   for (int i = 0; i < NV; ++i) st(1, i, lam[NQ + i] + pend[NQ + i]);
-  st(2, 0, lam[N - 1]);
+  for (int j = 0; j < NW; ++j) st(2, j, lam[NQ + NV + j]);
 }
 
 extern "C" void jaxbody_range(const Inputs* in, int64_t b0, int64_t b1) {

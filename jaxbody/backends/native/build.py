@@ -229,21 +229,25 @@ def merge_batch(axis_size: int, args, batched) -> tuple[list, int]:
 class Kernel:
     """One compiled tree, dtype and mode (:func:`generate`): its address and the call."""
 
-    def __init__(self, tree, joints, with_external: bool, dtype, mode: str = "fd"):
+    def __init__(self, tree, joints, with_external: bool, dtype, mode: str = "fd", harmonics: int | None = None):
         self.tree, self.joints, self.with_external = tree, joints, with_external
         self.nv, self.nq, self.dtype, self.mode = joints.nv, joints.nq, np.dtype(dtype), mode
-        self.widths = result_widths(joints, mode)
+        # a whole solve's Fourier-series joint torque: its number of harmonics shapes the program
+        self.harmonics = harmonics
+        self.widths = result_widths(joints, mode, harmonics)
+        if harmonics is not None and not (mode in ("rk4", "rk4_run", "rk4_run_vjp") or mode.startswith("adaptive")):
+            raise ValueError(f"a Fourier-series joint torque is evaluated by the RK4 step and the whole solves, not {mode!r}")
         self.target = _handler(self.dtype)
         if mode == "rk4_run":
-            self.source = generate_run(tree, joints, self.dtype)
+            self.source = generate_run(tree, joints, self.dtype, harmonics)
         elif mode == "rk4_run_vjp":
-            self.source = generate_run_vjp(tree, joints, self.dtype)
+            self.source = generate_run_vjp(tree, joints, self.dtype, harmonics)
         elif mode.startswith("adaptive:"):
-            self.source = generate_adaptive(tree, joints, self.dtype, tableau(mode.split(":")[1]))
+            self.source = generate_adaptive(tree, joints, self.dtype, tableau(mode.split(":")[1]), harmonics)
         elif mode.startswith("adaptive_vjp:"):
-            self.source = generate_adaptive_vjp(tree, joints, self.dtype, tableau(mode.split(":")[1]))
+            self.source = generate_adaptive_vjp(tree, joints, self.dtype, tableau(mode.split(":")[1]), harmonics)
         else:
-            self.source = generate(tree, joints, with_external, self.dtype, mode)
+            self.source = generate(tree, joints, with_external, self.dtype, mode, harmonics)
         self._addresses = {}  # built on the first call (traced), where a build error then shows
         self._batched = {}
         if mode in ("fd", "rk4", "energy", "rk4_run", "rk4_run_vjp") or mode.startswith("adaptive_vjp:"):
@@ -256,7 +260,7 @@ class Kernel:
         with _lock:  # two threads tracing the same kernel build it once
             if build not in self._addresses:
                 source = self.source.replace("@VECTOR_BYTES@", BUILDS[build])
-                stem = self.mode.replace(":", "_")
+                stem = self.mode.replace(":", "_") + ("" if self.harmonics is None else f"_fourier{self.harmonics}")
                 library = build_library(source, f"{stem}_{build}")
                 lib = ctypes.cdll.LoadLibrary(str(library))
                 _loaded.append(lib)
@@ -322,7 +326,8 @@ def _has_avx512() -> bool:
 
 
 @functools.lru_cache(maxsize=256)
-def compiled_kernel(tree, joints, with_external: bool, dtype, mode: str = "fd") -> Kernel:
-    """The :class:`Kernel` of a tree, dtype and mode, made once per process (its builds on first call)."""
+def compiled_kernel(tree, joints, with_external: bool, dtype, mode: str = "fd", harmonics: int | None = None) -> Kernel:
+    """The :class:`Kernel` of a tree, dtype and mode (and a whole solve's Fourier-series joint
+    torque of ``harmonics`` harmonics), made once per process (its builds on first call)."""
     with _lock:
-        return Kernel(tree, joints, with_external, dtype, mode)
+        return Kernel(tree, joints, with_external, dtype, mode, harmonics)

@@ -11,7 +11,7 @@ import numpy as np
 
 from .. import scalar
 from .symbolic import declared_scalars, Emitter, input_scalars, stop_derivative, Sym, sym_sqrt, SymbolicModel, with_derivative
-from .rk4 import joint_force, qdot_scalars, rk4_scalars, spring_potential
+from .rk4 import fourier_torque, joint_force, qdot_scalars, rk4_scalars, spring_potential, torque_size, work_count
 from .differentiate import active_values, adjoint_program, inverse_dynamics_block, tangent_program
 
 def _template(name: str) -> str:
@@ -26,8 +26,13 @@ def _template(name: str) -> str:
 _SLOTS = {"q": 0, "v": 1, "f": 2, "p": 3, "g": 4, "ext": 5, "dq": 6, "dv": 7, "df": 8, "ct": 6}
 _STEP_SLOTS = {"q": 0, "v": 1, "f": 2, "p": 3, "g": 4, "ext": 5, "h": 6, "k": 7, "r": 8, "d": 9, "dq": 10, "dv": 11, "df": 12, "ct": 10}
 # the whole-solve program (generate_run): the state, the model, springs and dampers, the work
-# reached so far and the schedule
+# reached so far and the schedule. The whole-solve and adaptive programs take no body loads: the
+# loads' slot ("ext") holds the coefficient row of a Fourier-series joint torque where they
+# have one (rk4.torque_size)
 _RUN_SLOTS = {"q": 0, "v": 1, "f": 2, "p": 3, "g": 4, "ext": 5, "k": 6, "r": 7, "d": 8, "w": 9, "s": 10}
+# the RK4 step with a Fourier-series joint torque ("rk4" only: its derivatives come from the step
+# written in JAX): the torque's coefficient row and the step's times (t0, t1) after the dampers
+_STEP_TORQUE_SLOTS = {"tq": 10, "tm": 11}
 # the energy program: the state, the model, gravity and the joint springs
 _ENERGY_SLOTS = {"q": 0, "v": 1, "p": 2, "g": 3, "k": 4, "r": 5}
 
@@ -37,22 +42,23 @@ MODES = ("fd", "jvp", "vjp", "rk4", "rk4_jvp", "rk4_vjp", "energy", "rk4_run", "
          *(f"{kind}:{method}" for kind in ("adaptive", "adaptive_vjp") for method in ("tsit5", "dopri5", "dopri8")))
 
 
-def result_widths(joints, mode: str) -> tuple:
-    """Row widths of a program's results."""
-    nq, nv = joints.nq, joints.nv
+def result_widths(joints, mode: str, harmonics=None) -> tuple:
+    """Row widths of a program's results (``harmonics``: of a whole solve's Fourier-series joint
+    torque, whose work is a second one)."""
+    nq, nv, nw = joints.nq, joints.nv, work_count(harmonics)
     if mode.startswith("adaptive_vjp:"):
-        return (nq, nv, 1)
+        return (nq, nv, nw)
     if mode.startswith("adaptive:"):
-        return (nq, nv, 1, 6)  # then the saved states and the checkpoints, sized per call
+        return (nq, nv, nw, 6)  # then the saved states and the checkpoints, sized per call
     return {
         "fd": (nv,),
         "jvp": (nv,),
         "vjp": (nq, nv, nv),
-        "rk4": (nq, nv, nq, nv, nq, nv, 3),
+        "rk4": (nq, nv, nq, nv, nq, nv, 3 * nw),
         "rk4_jvp": (nq, nv, nq, nv, nq, nv, 3),
         "rk4_vjp": (nq, nv, nv),
         "energy": (3,),
-        "rk4_run": (nq, nv, 1, 3),
+        "rk4_run": (nq, nv, nw, 3),
         "rk4_run_vjp": (nq, nv),
     }[mode]
 
@@ -128,7 +134,7 @@ def _acceleration(em, model, joints, q, v, f, g, ext, derivative):
     return [with_derivative(x, x + c) for x, c in zip(a0, correction)]
 
 
-def generate(tree, joints, with_external: bool, dtype, mode: str = "fd") -> str:
+def generate(tree, joints, with_external: bool, dtype, mode: str = "fd", harmonics=None) -> str:
     """C++ source of forward dynamics, or of one RK4 step, for this tree (parameters, gravity,
     loads as inputs).
 
@@ -136,7 +142,9 @@ def generate(tree, joints, with_external: bool, dtype, mode: str = "fd") -> str:
     ``(dq, dv, df)`` of the state and force (forward mode on the generated program);
     ``"vjp"`` the cotangents of ``(q, v, f)`` for a cotangent of the acceleration (reverse mode).
     ``"rk4"``, ``"rk4_jvp"``, ``"rk4_vjp"``: the same for one RK4 step of length ``h`` (an extra
-    input) with the force held over the step (:func:`rk4_scalars`: six results).
+    input) with the force held over the step (:func:`rk4_scalars`: six results). ``harmonics``
+    (``"rk4"`` only): a Fourier-series joint torque evaluated at the stages' times, its work a
+    second one (the last result: ``(Δw, k1w, k4w)`` of each work, work by work within each).
     """
     step = mode.startswith("rk4")
     if mode == "energy":
@@ -164,11 +172,22 @@ def generate(tree, joints, with_external: bool, dtype, mode: str = "fd") -> str:
         reference = input_scalars(em, "r", joints.nq, slots["r"])
         damping = input_scalars(em, "d", joints.nv, slots["d"])
 
-        def field(q, v):
+        def field(q, v, t):
             total, power = joint_force(joints, q, v, f, stiffness, reference, damping)
             return acceleration(q, v, total), power
 
-        outputs = list(rk4_scalars(field, joints, q, v, h))
+        times = (None, None)
+        if harmonics is not None:
+            torque = (input_scalars(em, "tq", torque_size(joints.nv, harmonics), _STEP_TORQUE_SLOTS["tq"]), harmonics)
+            times = tuple(input_scalars(em, "tm", 2, _STEP_TORQUE_SLOTS["tm"]))
+            operands = (model, f, g, stiffness, reference, damping, torque)
+
+            def field(q, v, t):  # noqa: F811 (the torque's field)
+                return _stage_field(em, joints, operands, q, v, t, derivative, ext)
+
+        outputs = list(rk4_scalars(field, joints, q, v, h, *times))
+        if harmonics is not None:
+            outputs[-1] = [x for part in outputs[-1] for x in part]
     else:
         outputs = [acceleration(q, v, f)]
     primal = list(em.ops)
@@ -233,9 +252,10 @@ def _quaternion_coordinates(joints) -> list:
     return out
 
 
-def _run_operands(em: Emitter, tree, joints):
+def _run_operands(em: Emitter, tree, joints, harmonics=None):
     """The operands a whole solve holds over its steps (:data:`_RUN_SLOTS`), loaded first:
-    ``(model, force, gravity, stiffness, reference, damping)``."""
+    ``(model, force, gravity, stiffness, reference, damping, torque)``, ``torque`` the
+    coefficient row of a Fourier-series joint torque of ``harmonics`` harmonics (``None``: none)."""
     slots = _RUN_SLOTS
     model = SymbolicModel(tree, joints, em, slots["p"])
     f = input_scalars(em, "f", joints.nv, slots["f"])
@@ -243,20 +263,39 @@ def _run_operands(em: Emitter, tree, joints):
     stiffness = input_scalars(em, "k", joints.n_joint, slots["k"])
     reference = input_scalars(em, "r", joints.nq, slots["r"])
     damping = input_scalars(em, "d", joints.nv, slots["d"])
-    return model, f, g, stiffness, reference, damping
+    torque = None
+    if harmonics is not None:
+        torque = (input_scalars(em, "tq", torque_size(joints.nv, harmonics), slots["ext"]), harmonics)
+    return model, f, g, stiffness, reference, damping, torque
 
 
-def _run_step(em: Emitter, joints, operands, q: list, v: list, h, derivative=None) -> tuple:
-    """One step of a whole solve on symbolic scalars: the RK4 step of :func:`rk4_scalars`, then
-    the quaternions of ball and free joints renormalised (``q / sqrt(|q|²)``, as
-    :func:`jaxbody.kinematics.normalize_qpos`). Returns ``(q1, v1, Δw)``."""
-    model, f, g, stiffness, reference, damping = operands
+def _stage_field(em: Emitter, joints, operands, q: list, v: list, t, derivative=None, ext=None) -> tuple:
+    """``(a, P)`` at one stage: the held force plus the torque at time ``t``, the springs and
+    dampers, through forward dynamics; ``P`` the list of works' powers (:func:`.rk4.work_count`):
+    the dampers', then the torque's ``τ·v``."""
+    model, f, g, stiffness, reference, damping, torque = operands
+    powers = []
+    if torque is not None:
+        tau = fourier_torque(torque[0], joints.nv, torque[1], t)
+        f = [fi + ti for fi, ti in zip(f, tau)]
+        power = 0.0
+        for ti, vi in zip(tau, v):
+            power = power + ti * vi
+        powers.append(power)
+    total, power = joint_force(joints, q, v, f, stiffness, reference, damping)
+    return _acceleration(em, model, joints, q, v, total, g, ext, derivative), [power] + powers
 
-    def field(q, v):
-        total, power = joint_force(joints, q, v, f, stiffness, reference, damping)
-        return _acceleration(em, model, joints, q, v, total, g, None, derivative), power
 
-    q1, v1, _, _, _, _, work = rk4_scalars(field, joints, q, v, h)
+def _run_step(em: Emitter, joints, operands, q: list, v: list, h, derivative=None, t0=None, t1=None) -> tuple:
+    """One step of a whole solve on symbolic scalars from ``t0`` to ``t1``: the RK4 step of
+    :func:`rk4_scalars`, then the quaternions of ball and free joints renormalised (``q /
+    sqrt(|q|²)``, as :func:`jaxbody.kinematics.normalize_qpos`). Returns ``(q1, v1, Δw)``, ``Δw``
+    the list of works' increments."""
+
+    def field(q, v, t):
+        return _stage_field(em, joints, operands, q, v, t, derivative)
+
+    q1, v1, _, _, _, _, work = rk4_scalars(field, joints, q, v, h, t0, t1)
     q1 = list(q1)
     for block in _quaternion_coordinates(joints):
         squares = [q1[i] * q1[i] for i in block]
@@ -275,54 +314,59 @@ def _hoisted(lines: list) -> list:
     return [line for line in lines if " = ld(" not in line]
 
 
-def _run_program(tree, joints, derivative=None) -> tuple:
-    """One step of a whole solve on the carried state ``qc``, ``vc`` (:func:`_run_step`):
-    ``(emitter, operand loads, step lines, (q, v), (q1, v1, Δw))``, the step lines ending in
-    the stores of ``q1``, ``v1`` to ``qn``, ``vn``."""
+def _run_program(tree, joints, derivative=None, harmonics=None) -> tuple:
+    """One step of a whole solve on the carried state ``qc``, ``vc`` from ``tprev`` to ``tnext``
+    (:func:`_run_step`): ``(emitter, operand loads, step lines, (q, v), (q1, v1, Δw))``, the step
+    lines ending in the stores of ``q1``, ``v1`` to ``qn``, ``vn``."""
     em = Emitter()
-    operands = _run_operands(em, tree, joints)
+    operands = _run_operands(em, tree, joints, harmonics)
     invariant = len(em.lines)
     q = _carried(em, "q", joints.nq, "qc")
     v = _carried(em, "v", joints.nv, "vc")
-    q1, v1, dw = _run_step(em, joints, operands, q, v, Sym("h", em), derivative)
+    # the step's times enter only a field that depends on time (the torque's)
+    times = (Sym("tprev", em), Sym("tnext", em)) if harmonics is not None else (None, None)
+    q1, v1, dw = _run_step(em, joints, operands, q, v, Sym("h", em), derivative, *times)
     step = em.lines[invariant:]
     step += [f"qn[{i}] = {_symbol_value(x)};" for i, x in enumerate(q1)]
     step += [f"vn[{i}] = {_symbol_value(x)};" for i, x in enumerate(v1)]
     return em, em.lines[:invariant], step, (q, v), (q1, v1, dw)
 
 
-def generate_run(tree, joints, dtype) -> str:
+def generate_run(tree, joints, dtype, harmonics=None) -> str:
     """C++ source of a whole fixed-step RK4 solve (``"rk4_run"``, :data:`_RUN_BLOCK`): the
-    step of :func:`_run_step` on the carried state, the operands loaded before the loop."""
-    _, invariant, step, _, (_, _, dw) = _run_program(tree, joints)
-    return _run_source(_RUN_BLOCK, invariant, {"BODY": step + [f"dw = {_symbol_value(dw)};"]}, joints, dtype)
+    step of :func:`_run_step` on the carried state, the operands loaded before the loop;
+    ``harmonics``: that of a Fourier-series joint torque (``None``: none)."""
+    _, invariant, step, _, (_, _, dw) = _run_program(tree, joints, harmonics=harmonics)
+    body = step + [f"dw[{j}] = {_symbol_value(x)};" for j, x in enumerate(dw)]
+    return _run_source(_RUN_BLOCK, invariant, {"BODY": body}, joints, dtype, harmonics)
 
 
-def generate_run_vjp(tree, joints, dtype) -> str:
+def generate_run_vjp(tree, joints, dtype, harmonics=None) -> str:
     """C++ source of the reverse sweep of a whole solve (``"rk4_run_vjp"``, :data:`_RUN_VJP_BLOCK`):
     the same steps recomputed from the checkpoints, and the reverse-mode program of
     :func:`_run_step` (cotangents of ``(q1, v1, Δw)`` to those of ``(q, v)``) on a kept state
-    (``bq``, ``bv``)."""
-    _, invariant, step, _, _ = _run_program(tree, joints)
-    rev, _, _, (q, v), (q1, v1, dw) = _run_program(tree, joints, derivative="vjp")
+    (``bq``, ``bv``) and its times."""
+    _, invariant, step, _, _ = _run_program(tree, joints, harmonics=harmonics)
+    rev, _, _, (q, v), (q1, v1, dw) = _run_program(tree, joints, derivative="vjp", harmonics=harmonics)
     primal = list(rev.ops)
     cq = _carried(rev, "cq", joints.nq, "aq")
     cv = _carried(rev, "cv", joints.nv, "av")
-    pairs = list(zip(q1, cq)) + list(zip(v1, cv)) + [(dw, Sym("aw", rev))]
+    cw = _carried(rev, "cw", len(dw), "aw")
+    pairs = list(zip(q1, cq)) + list(zip(v1, cv)) + [(x, c) for x, c in zip(dw, cw) if isinstance(x, Sym)]
     adj = adjoint_program(primal, active_values(primal, {"q", "v"}), pairs)
     # the kept state's reads, then the step's operations and their adjoints
     body = [f"const U q_{i} = bq[{i}];" for i in range(joints.nq)] + [f"const U v_{i} = bv[{i}];" for i in range(joints.nv)]
     body += _hoisted(rev.lines[len(invariant) + joints.nq + joints.nv :])
     body += [f"rq[{i}] = {_symbol_value(adj.get(x.name, 0.0))};" for i, x in enumerate(q)]
     body += [f"rv[{i}] = {_symbol_value(adj.get(x.name, 0.0))};" for i, x in enumerate(v)]
-    return _run_source(_RUN_VJP_BLOCK, invariant, {"STEP": step, "BODY": body}, joints, dtype)
+    return _run_source(_RUN_VJP_BLOCK, invariant, {"STEP": step, "BODY": body}, joints, dtype, harmonics)
 
 
-def _run_source(block: str, invariant: list, parts: dict, joints, dtype) -> str:
+def _run_source(block: str, invariant: list, parts: dict, joints, dtype, harmonics=None) -> str:
     text = block.replace("@ACCESS@", _ACCESS).replace("@INVARIANT@", "\n".join("  " + line for line in invariant))
     for key, lines in parts.items():
         text = text.replace(f"@{key}@", "\n".join("      " + line for line in lines))
-    text = text.replace("@NQ@", str(joints.nq)).replace("@NV@", str(joints.nv))
+    text = text.replace("@NQ@", str(joints.nq)).replace("@NV@", str(joints.nv)).replace("@NW@", str(work_count(harmonics)))
     prelude = _KERNEL.split("// the generated function of the states")[0]
     return prelude.replace("@COMMON@", COMMON_TEMPLATE.replace("@T@", SCALAR_TYPES[np.dtype(dtype)][0])) + text
 
@@ -343,17 +387,17 @@ _ADAPTIVE_BLOCK = _template("adaptive_block.cc")
 _ADAPTIVE_VJP_BLOCK = _template("adaptive_vjp_block.cc")
 
 
-def _field_program(tree, joints, derivative=None) -> tuple:
-    """The field ``(q̇, a, P)`` at a state read from ``sq``, ``sv`` on symbolic scalars (springs,
-    dampers, gravity and the force held): ``(emitter, operand loads, field lines, (q, v), outputs)``."""
+def _field_program(tree, joints, derivative=None, harmonics=None) -> tuple:
+    """The field ``(q̇, a, P)`` at a state read from ``sq``, ``sv`` at time ``t`` on symbolic
+    scalars (springs, dampers, gravity, the force held and a Fourier-series torque of
+    ``harmonics`` harmonics): ``(emitter, operand loads, field lines, (q, v), outputs)``."""
     em = Emitter()
-    model, f, g, stiffness, reference, damping = _run_operands(em, tree, joints)
+    operands = _run_operands(em, tree, joints, harmonics)
     invariant = len(em.lines)
     q = _carried(em, "q", joints.nq, "sq")
     v = _carried(em, "v", joints.nv, "sv")
-    total, power = joint_force(joints, q, v, f, stiffness, reference, damping)
-    a = _acceleration(em, model, joints, q, v, total, g, None, derivative)
-    outputs = list(qdot_scalars(joints, q, v)) + list(a) + [power]
+    a, powers = _stage_field(em, joints, operands, q, v, Sym("t", em), derivative)
+    outputs = list(qdot_scalars(joints, q, v)) + list(a) + powers
     return em, em.lines[:invariant], em.lines[invariant:], (q, v), outputs
 
 
@@ -380,36 +424,39 @@ def _projection(joints) -> tuple[list, list]:
     return forward, reverse
 
 
-def _adaptive_source(template: str, invariant: list, parts: dict, joints, dtype, tab) -> str:
-    text = template.replace("@ATTEMPT@", _ADAPTIVE_ATTEMPT)
+def _adaptive_source(template: str, invariant: list, parts: dict, joints, dtype, tab, harmonics=None) -> str:
+    helpers, attempt = _ADAPTIVE_ATTEMPT.split("//@@ATTEMPT\n")
+    text = template.replace("@HELPERS@", helpers).replace("@ATTEMPT@", attempt)
     dense = np.array(tab.dense)
     S = tab.stages
     A = [list(row) + [0.0] * (S - len(row)) for row in tab.a]
     forward, reverse = _projection(joints)
     parts = {**parts, "PROJECT": forward, "PROJECT_VJP": reverse}
     text = (text.replace("@S@", str(S)).replace("@D@", str(dense.shape[1])).replace("@A@", _c_array(A))
-            .replace("@E@", _c_array(tab.e)).replace("@P@", _c_array(dense.tolist())))
-    return _run_source(text, invariant, parts, joints, dtype)
+            .replace("@E@", _c_array(tab.e)).replace("@P@", _c_array(dense.tolist())).replace("@C@", _c_array(list(tab.c))))
+    return _run_source(text, invariant, parts, joints, dtype, harmonics)
 
 
-def generate_adaptive(tree, joints, dtype, tab) -> str:
-    """C++ source of a whole adaptive solve by the pair ``tab`` (:data:`_ADAPTIVE_BLOCK`)."""
-    em, invariant, lines, _, outputs = _field_program(tree, joints)
+def generate_adaptive(tree, joints, dtype, tab, harmonics=None) -> str:
+    """C++ source of a whole adaptive solve by the pair ``tab`` (:data:`_ADAPTIVE_BLOCK`);
+    ``harmonics``: that of a Fourier-series joint torque (``None``: none)."""
+    em, invariant, lines, _, outputs = _field_program(tree, joints, harmonics=harmonics)
     field = lines + [f"f[{i}] = {_symbol_value(x)};" for i, x in enumerate(outputs)]
-    return _adaptive_source(_ADAPTIVE_BLOCK, invariant, {"FIELD": field}, joints, dtype, tab)
+    return _adaptive_source(_ADAPTIVE_BLOCK, invariant, {"FIELD": field}, joints, dtype, tab, harmonics)
 
 
-def generate_adaptive_vjp(tree, joints, dtype, tab) -> str:
+def generate_adaptive_vjp(tree, joints, dtype, tab, harmonics=None) -> str:
     """C++ source of the reverse sweep of :func:`generate_adaptive` (:data:`_ADAPTIVE_VJP_BLOCK`):
     the field and the reverse-mode program of the field (cotangents ``lf`` of ``(q̇, a, P)`` to
     those of ``(q, v)`` in ``r``)."""
-    em, invariant, lines, _, outputs = _field_program(tree, joints)
+    em, invariant, lines, _, outputs = _field_program(tree, joints, harmonics=harmonics)
     field = lines + [f"f[{i}] = {_symbol_value(x)};" for i, x in enumerate(outputs)]
-    rev, _, rev_lines, (q, v), rev_outputs = _field_program(tree, joints, derivative="vjp")
+    rev, _, rev_lines, (q, v), rev_outputs = _field_program(tree, joints, derivative="vjp", harmonics=harmonics)
     primal = list(rev.ops)
     cts = _carried(rev, "lf", len(rev_outputs), "lf")
     pairs = [(o, c) for o, c in zip(rev_outputs, cts) if isinstance(o, Sym)]
     adj = adjoint_program(primal, active_values(primal, {"q", "v"}), pairs)
     body = _hoisted(rev.lines[len(invariant):])
     body += [f"r[{i}] = {_symbol_value(adj.get(x.name, 0.0))};" for i, x in enumerate(list(q) + list(v))]
-    return _adaptive_source(_ADAPTIVE_VJP_BLOCK, invariant, {"FIELD": field, "FIELD_VJP": body}, joints, dtype, tab)
+    return _adaptive_source(_ADAPTIVE_VJP_BLOCK, invariant, {"FIELD": field, "FIELD_VJP": body}, joints, dtype, tab,
+                            harmonics)

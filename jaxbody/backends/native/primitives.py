@@ -89,7 +89,7 @@ def _single_step(tree, joints, with_external, q, v, f, p, g, ext, h, k, r, d):
     """One RK4 step of one state from the operands' rows, by the unrolled kernel."""
     sc = scalar.scalars
 
-    def field(qs, vs):
+    def field(qs, vs, t):
         total, power = joint_force(joints, qs, vs, sc(f), sc(k), sc(r), sc(d))
         a = _single_state(tree, joints, with_external, jnp.stack(qs), jnp.stack(vs), scalar.stack(total, p.dtype), p, g, ext)
         return sc(a), power

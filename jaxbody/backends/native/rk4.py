@@ -6,7 +6,7 @@ rules evaluate the same arithmetic. The step is the classical tableau of
 :mod:`jaxbody.backends.scalar` (``RK4_C``, ``RK4_A``, ``RK4_B``).
 """
 
-from ..scalar import RK4_A, RK4_B
+from ..scalar import fourier_series, RK4_A, RK4_B, RK4_C
 from .symbolic import sym_atan2, sym_sqrt, where_negative
 
 def qdot_scalars(joints, q: list, v: list) -> list:
@@ -101,17 +101,20 @@ _RK4_WEIGHTS = tuple(b * _RK4_DENOMINATOR for b in RK4_B)
 assert _RK4_WEIGHTS == (1.0, 2.0, 2.0, 1.0) and _RK4_DENOMINATOR == 6.0
 
 
-def rk4_scalars(field, joints, q: list, v: list, h) -> tuple:
+def rk4_scalars(field, joints, q: list, v: list, h, t0=None, t1=None) -> tuple:
     """One classical RK4 step of ``(q̇, v̇, ẇ) = (q̇(q, v), a, P)`` on lists of scalars, where
-    ``field(q, v) = (a, P)`` (``P``: the dampers' power, integrated as work). Returns ``(q1, v1,
-    k1q, k1v, k4q, k4v, (Δw, k1w, k4w))``, the stage increments ``k = h·f`` being those of the
-    first and last stage (the dense output's end slopes). The tableau is
-    :data:`~jaxbody.backends.scalar.RK4_A`, :data:`~jaxbody.backends.scalar.RK4_B`; the same
-    arithmetic, in the same order, as :class:`jaxbody.simulation.RK4Stages`."""
+    ``field(q, v, t) = (a, P)`` (``P``: the power integrated as work, or a list of powers each
+    integrated as its own work; ``t``: the stage's time, ``None`` without ``t0``). Returns ``(q1, v1, k1q, k1v, k4q, k4v, (Δw, k1w, k4w))``, the
+    stage increments ``k = h·f`` being those of the first and last stage (the dense output's end
+    slopes). The tableau is :data:`~jaxbody.backends.scalar.RK4_A`,
+    :data:`~jaxbody.backends.scalar.RK4_B`; the stage times ``t0``, ``t0 + c_i h`` and ``t1``
+    (:data:`~jaxbody.backends.scalar.RK4_C`); the same arithmetic, in the same order, as
+    :class:`jaxbody.simulation.RK4Stages`."""
 
-    def increment(q, v):
-        a, power = field(q, v)
-        return [h * x for x in qdot_scalars(joints, q, v)], [h * x for x in a], h * power
+    def increment(q, v, t):
+        a, power = field(q, v, t)
+        work = [h * p for p in power] if isinstance(power, list) else h * power
+        return [h * x for x in qdot_scalars(joints, q, v)], [h * x for x in a], work
 
     def ahead(k, c):
         return [y + c * d for y, d in zip(q, k[0])], [y + c * d for y, d in zip(v, k[1])]
@@ -120,10 +123,34 @@ def rk4_scalars(field, joints, q: list, v: list, h) -> tuple:
         # (k1 + 2 k2 + 2 k3 + k4) / 6: integer weights, one division
         return (k1 + _RK4_WEIGHTS[1] * k2 + _RK4_WEIGHTS[2] * k3 + k4) / _RK4_DENOMINATOR
 
-    k1 = increment(q, v)
-    k2 = increment(*ahead(k1, RK4_A[1][0]))
-    k3 = increment(*ahead(k2, RK4_A[2][1]))
-    k4 = increment(*ahead(k3, RK4_A[3][2]))
+    times = [None] * 4 if t0 is None else [t0, t0 + RK4_C[1] * h, t0 + RK4_C[2] * h, t1]
+    k1 = increment(q, v, times[0])
+    k2 = increment(*ahead(k1, RK4_A[1][0]), times[1])
+    k3 = increment(*ahead(k2, RK4_A[2][1]), times[2])
+    k4 = increment(*ahead(k3, RK4_A[3][2]), times[3])
     y1 = [[y + combine(a, b, c, d) for y, a, b, c, d in zip(y0, *ks)] for y0, *ks in zip((q, v), k1, k2, k3, k4)]
-    work = combine(k1[2], k2[2], k3[2], k4[2])
+    if isinstance(k1[2], list):
+        work = [combine(*ws) for ws in zip(k1[2], k2[2], k3[2], k4[2])]
+    else:
+        work = combine(k1[2], k2[2], k3[2], k4[2])
     return y1[0], y1[1], k1[0], k1[1], k4[0], k4[1], [work, k1[2], k4[2]]
+
+
+def work_count(harmonics) -> int:
+    """Works a whole-solve program integrates: the dampers', and a Fourier-series joint torque's
+    where it has one (``harmonics`` not ``None``)."""
+    return 1 if harmonics is None else 2
+
+
+def torque_size(nv: int, harmonics: int) -> int:
+    """Length of the torque's coefficient row (:func:`torque_row`): ``ω``, then ``c`` ``(nv,)``,
+    ``a`` and ``b`` ``(nv, K)`` row by row."""
+    return 1 + nv * (1 + 2 * harmonics)
+
+
+def fourier_torque(coefficients: list, nv: int, harmonics: int, t) -> list:
+    """The torque :func:`~jaxbody.backends.scalar.fourier_series` at time ``t`` from its
+    coefficient row (:func:`torque_size`) on scalars."""
+    omega, offset = coefficients[0], coefficients[1 : 1 + nv]
+    rows = lambda start: [coefficients[start + i * harmonics : start + (i + 1) * harmonics] for i in range(nv)]  # noqa: E731
+    return fourier_series(t, omega, offset, rows(1 + nv), rows(1 + nv + nv * harmonics))

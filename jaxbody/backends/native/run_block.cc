@@ -5,7 +5,8 @@ static void run_block(const Inputs& in, int64_t b0, int n) {
   U qc[@NQ@], vc[@NV@], qn[@NQ@], vn[@NV@];
   for (int i = 0; i < @NQ@; ++i) qc[i] = ld(0, i);
   for (int i = 0; i < @NV@; ++i) vc[i] = ld(1, i);
-  U wc = ld(9, 0);
+  U wc[@NW@], dw[@NW@], wn[@NW@];
+  for (int j = 0; j < @NW@; ++j) wc[j] = ld(9, j);
   const U t0 = ld(10, 0), t1 = ld(10, 1), steps = ld(10, 2), t1_floor = ld(10, 3), limit = ld(10, 4), dt0 = ld(10, 5);
   const I frozen = ld(10, 6) != T(0);
   U tprev = t0, tnext = t0 + dt0;
@@ -32,12 +33,11 @@ static void run_block(const Inputs& in, int64_t b0, int n) {
     }
     ++it;
     const U h = tnext - tprev;
-    U dw;
     {
 @BODY@
     }
-    const U wn = wc + dw;
-    I finite = (wn - wn) == T(0);  // false for inf and NaN
+    I finite = (U{} + T(1)) == T(1);
+    for (int j = 0; j < @NW@; ++j) wn[j] = wc[j] + dw[j], finite &= (wn[j] - wn[j]) == T(0);  // false for inf and NaN
     for (int i = 0; i < @NQ@; ++i) finite &= (qn[i] - qn[i]) == T(0);
     for (int i = 0; i < @NV@; ++i) finite &= (vn[i] - vn[i]) == T(0);
     finite |= frozen;
@@ -45,7 +45,7 @@ static void run_block(const Inputs& in, int64_t b0, int n) {
     const I moving = active & (frozen == 0);
     for (int i = 0; i < @NQ@; ++i) qc[i] = moving ? qn[i] : qc[i];
     for (int i = 0; i < @NV@; ++i) vc[i] = moving ? vn[i] : vc[i];
-    wc = moving ? wn : wc;
+    for (int j = 0; j < @NW@; ++j) wc[j] = moving ? wn[j] : wc[j];
     count = active ? count + T(1) : count;
     failed |= active & (finite == 0);
     const U next = count + T(1);
@@ -58,7 +58,7 @@ static void run_block(const Inputs& in, int64_t b0, int n) {
   }
   for (int i = 0; i < @NQ@; ++i) st(0, i, qc[i]);
   for (int i = 0; i < @NV@; ++i) st(1, i, vc[i]);
-  st(2, 0, wc);
+  for (int j = 0; j < @NW@; ++j) st(2, j, wc[j]);
   st(3, 0, tprev);
   st(3, 1, count);
   st(3, 2, failed != 0 ? U{} + T(1) : U{});

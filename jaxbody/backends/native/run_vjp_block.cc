@@ -11,10 +11,12 @@ static void vjp_block(const Inputs& in, int64_t b0, int n) {
   const U taken = ld(12, 1);
   for (int i = 0; i < @NQ@; ++i) aq[i] = ld(13, i);
   for (int i = 0; i < @NV@; ++i) av[i] = ld(14, i);
-  const U aw = ld(15, 0);
+  U aw[@NW@];
+  for (int j = 0; j < @NW@; ++j) aw[j] = ld(15, j);
   int64_t total = 0;
   for (int l = 0; l < n; ++l) total = int64_t(taken[l]) > total ? int64_t(taken[l]) : total;
-  std::unique_ptr<V[]> kept(new V[every * (NS + 1)]);  // a segment's states and step lengths
+  constexpr int KEPT = NS + 3;  // a kept step: its state, length and times
+  std::unique_ptr<V[]> kept(new V[every * KEPT]);
   for (int64_t seg = (total - 1) / every; seg >= 0 && total > 0; --seg) {
     const int64_t first = seg * every, end = first + every < total ? first + every : total;
     const int64_t at = seg * (NS + 2);
@@ -22,11 +24,13 @@ static void vjp_block(const Inputs& in, int64_t b0, int n) {
     for (int i = 0; i < @NV@; ++i) vc[i] = ld(11, at + @NQ@ + i);
     U tprev = ld(11, at + NS), tnext = ld(11, at + NS + 1);
     for (int64_t r = first; r < end; ++r) {
-      V* row = &kept[(r - first) * (NS + 1)];
+      V* row = &kept[(r - first) * KEPT];
       const U h = tnext - tprev;
       for (int i = 0; i < @NQ@; ++i) row[i] = qc[i];
       for (int i = 0; i < @NV@; ++i) row[@NQ@ + i] = vc[i];
       row[NS] = h;
+      row[NS + 1] = tprev;
+      row[NS + 2] = tnext;
       if (r + 1 == end) break;
       {
 @STEP@
@@ -42,12 +46,12 @@ static void vjp_block(const Inputs& in, int64_t b0, int n) {
       tnext = tn;
     }
     for (int64_t r = end - 1; r >= first; --r) {
-      const V* row = &kept[(r - first) * (NS + 1)];
+      const V* row = &kept[(r - first) * KEPT];
       const I active = ((U{} + T(r)) < taken) & (frozen == 0);
       {
         const V* bq = row;
         const V* bv = row + @NQ@;
-        const U h = row[NS];
+        const U h = row[NS], tprev = row[NS + 1], tnext = row[NS + 2];
 @BODY@
       }
       for (int i = 0; i < @NQ@; ++i) aq[i] = active ? rq[i] : aq[i];

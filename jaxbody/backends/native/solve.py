@@ -7,6 +7,25 @@ from ..._types import Array, ArrayLike, Float
 from ...model import Model
 from .symbolic import parameter_vector
 from .build import compiled_kernel
+from .rk4 import work_count
+
+
+def torque_operand(torque, nv: int, dtype) -> tuple:
+    """``(row, harmonics)`` of a Fourier-series joint torque ``(frequency, sine, cosine, offset)``
+    (:class:`jaxbody.FourierTorque`'s fields: ``f`` in Hz, ``(nv, K)``, ``(nv, K)``, ``(nv,)``):
+    the coefficient row the whole-solve programs read in the loads' slot (``ω = 2π f``, then
+    ``c``, ``a``, ``b``: :func:`.rk4.torque_size` entries), and ``K``; ``None`` gives the unused slot's
+    ``(1, 1)`` zeros and no harmonics."""
+    if torque is None:
+        return jnp.zeros((1, 1), dtype), None
+    frequency, sine, cosine, offset = (jnp.asarray(x, dtype) for x in torque)
+    harmonics = int(sine.shape[-1])
+    if sine.shape != (nv, harmonics) or cosine.shape != (nv, harmonics) or offset.shape != (nv,) or frequency.shape != ():
+        raise ValueError(f"torque: expected frequency (), sine and cosine ({nv}, K), offset ({nv},); got "
+                         f"{frequency.shape}, {sine.shape}, {cosine.shape}, {offset.shape}")
+    # ω as jaxbody.FourierTorque computes it, so both evaluate the same series
+    row = jnp.concatenate([jnp.reshape(2 * np.pi * frequency, (1,)), offset, jnp.ravel(sine), jnp.ravel(cosine)])
+    return row[None], harmonics
 
 # ----------------------------------------------------------------------------- a whole solve
 def rk4_rollout(
@@ -23,6 +42,7 @@ def rk4_rollout(
     stiffness: Float[ArrayLike, " n_joint"] | None = None,
     reference: Float[ArrayLike, " nq"] | None = None,
     damping: Float[ArrayLike, " nv"] | None = None,
+    torque: tuple | None = None,
     work0: ArrayLike = 0.0,
     frozen: ArrayLike = False,
 ) -> tuple[Array, Array, Array, Array, Array, Array]:
@@ -30,10 +50,13 @@ def rk4_rollout(
 
     The steps are those of :func:`jaxbody.simulate` with ``solver="rk4"`` and ``dt0`` (diffrax's
     constant step size): ``N = ceil((t1 − t0) / dt0)`` steps ending at ``t_k = t0 + (t1 − t0)·k/N``,
-    each one :func:`rk4_step` (same field: ``force``, ``gravity``, springs and dampers held),
+    each one :func:`rk4_step` (same field: ``force``, ``gravity``, springs and dampers held) plus
+    a Fourier-series joint torque ``torque = (frequency, sine, cosine, offset)``
+    (:class:`jaxbody.FourierTorque`'s fields) evaluated at each stage's time,
     the quaternions of ball and free joints renormalised after every step. A step whose result
     is not finite ends that trajectory there (its state is that step's); ``max_steps`` (``None``:
-    no bound) ends it after that many steps. ``work0``: the dampers' work at ``t0``; ``frozen``:
+    no bound) ends it after that many steps. ``work0``: the dampers' work at ``t0`` (with a
+    torque, the pair of the dampers' and the torque's works, each integrated); ``frozen``:
     take the steps without moving (as :func:`jaxbody.simulate` does for an input that failed
     its checks with ``throw=False``).
 
@@ -43,15 +66,16 @@ def rk4_rollout(
     own times. No derivatives: :func:`jaxbody.simulate` differentiates through its
     step-by-step solve, which computes the same values. No checks; ``t1 >= t0``.
     """
-    rows = _rollout_rows(model, q, v, t0, t1, dt0, max_steps, force, gravity, stiffness, reference, damping, work0,
-                         frozen, 1)
-    kernel = compiled_kernel(model.tree, model.joints, False, np.dtype(model.body_pos.dtype), "rk4_run")
+    rows, harmonics = _rollout_rows(model, q, v, t0, t1, dt0, max_steps, force, gravity, stiffness, reference, damping,
+                                    torque, work0, frozen, 1)
+    kernel = compiled_kernel(model.tree, model.joints, False, np.dtype(model.body_pos.dtype), "rk4_run", harmonics)
     return _rollout_outputs(kernel.batched(*rows))
 
 
-def _rollout_rows(model, q, v, t0, t1, dt0, max_steps, force, gravity, stiffness, reference, damping, work0, frozen,
-                  every) -> tuple:
-    """The operands of the ``"rk4_run"`` programs (:data:`_RUN_SLOTS`), as ``(1, n)`` rows."""
+def _rollout_rows(model, q, v, t0, t1, dt0, max_steps, force, gravity, stiffness, reference, damping, torque, work0,
+                  frozen, every) -> tuple:
+    """The operands of the ``"rk4_run"`` programs (:data:`_RUN_SLOTS`), as ``(1, n)`` rows, and
+    the torque's harmonics (:func:`torque_operand`)."""
     from equinox.internal import nextafter, prevbefore
 
     dtype = model.body_pos.dtype
@@ -72,13 +96,20 @@ def _rollout_rows(model, q, v, t0, t1, dt0, max_steps, force, gravity, stiffness
     limit = jnp.asarray(np.inf if max_steps is None else max_steps, dtype)
     schedule = jnp.stack([t0, t1, steps, t1_floor, limit, dt0, jnp.asarray(frozen, dtype), jnp.asarray(every, dtype)])
     row = lambda x: jnp.reshape(x, (1, -1))  # noqa: E731
-    return (row(q), row(v), row(force), row(parameter_vector(model)), row(gravity), jnp.zeros((1, 1), dtype),
-            row(stiffness), row(reference), row(damping), row(jnp.asarray(work0, dtype)), row(schedule))
+    coefficients, harmonics = torque_operand(torque, model.nv, dtype)
+    return (row(q), row(v), row(force), row(parameter_vector(model)), row(gravity), coefficients,
+            row(stiffness), row(reference), row(damping), work_row(work0, harmonics, dtype), row(schedule)), harmonics
+
+
+def work_row(work, harmonics, dtype):
+    """The works of a whole solve (or their cotangents) as a ``(1, n)`` row of the program's
+    :func:`.rk4.work_count` works, a scalar given for each."""
+    return jnp.broadcast_to(jnp.asarray(work, dtype), (work_count(harmonics),))[None]
 
 
 def _rollout_outputs(outs) -> tuple:
     q1, v1, w1, status = (o[0] for o in outs[:4])
-    return q1, v1, w1[0], status[0], status[1].astype(jnp.int32), status[2] > 0
+    return q1, v1, w1[0] if w1.shape[0] == 1 else w1, status[0], status[1].astype(jnp.int32), status[2] > 0
 
 
 def checkpoint_layout(model: Model, max_steps: int, checkpoints: int) -> tuple[int, int]:
@@ -91,22 +122,23 @@ def checkpoint_layout(model: Model, max_steps: int, checkpoints: int) -> tuple[i
 
 
 def rk4_rollout_checkpointed(model: Model, q, v, t0, t1, dt0, max_steps: int, checkpoints: int, force=None, *,
-                             gravity=None, stiffness=None, reference=None, damping=None, work0=0.0, frozen=False):
+                             gravity=None, stiffness=None, reference=None, damping=None, torque=None, work0=0.0,
+                             frozen=False):
     """:func:`rk4_rollout` (bounded ``max_steps``) that also returns the checkpoints of its
     reverse sweep (:func:`rk4_rollout_vjp`): the state every ``every`` steps, ``every`` the
     fewest steps that fit ``max_steps`` into ``checkpoints`` slots (:func:`checkpoint_layout`).
     Returns ``(q, v, work, t, steps, failed, checkpoints)``."""
     every, width = checkpoint_layout(model, max_steps, checkpoints)
-    rows = _rollout_rows(model, q, v, t0, t1, dt0, max_steps, force, gravity, stiffness, reference, damping, work0,
-                         frozen, every)
-    kernel = compiled_kernel(model.tree, model.joints, False, np.dtype(model.body_pos.dtype), "rk4_run")
+    rows, harmonics = _rollout_rows(model, q, v, t0, t1, dt0, max_steps, force, gravity, stiffness, reference, damping,
+                                    torque, work0, frozen, every)
+    kernel = compiled_kernel(model.tree, model.joints, False, np.dtype(model.body_pos.dtype), "rk4_run", harmonics)
     outs = kernel.batched_with(kernel.widths + (width,))(*rows)
     return _rollout_outputs(outs) + (outs[4][0],)
 
 
 def rk4_rollout_vjp(model: Model, q, v, t0, t1, dt0, max_steps: int, checkpoints: int, saved, steps, cotangent_q,
                     cotangent_v, cotangent_work=0.0, force=None, *, gravity=None, stiffness=None, reference=None,
-                    damping=None, frozen=False):
+                    damping=None, torque=None, frozen=False):
     """Reverse mode of :func:`rk4_rollout` with respect to the initial ``(q, v)``, in one native call.
 
     ``saved``, ``steps``: the checkpoints and the steps taken, from
@@ -115,11 +147,12 @@ def rk4_rollout_vjp(model: Model, q, v, t0, t1, dt0, max_steps: int, checkpoints
     solve's), then each step's generated reverse-mode program carries the cotangents back.
     Returns the cotangents of ``(q, v)``. A frozen trajectory passes them through."""
     every, _ = checkpoint_layout(model, max_steps, checkpoints)
-    rows = _rollout_rows(model, q, v, t0, t1, dt0, max_steps, force, gravity, stiffness, reference, damping, 0.0,
-                         frozen, every)
+    rows, harmonics = _rollout_rows(model, q, v, t0, t1, dt0, max_steps, force, gravity, stiffness, reference, damping,
+                                    torque, 0.0, frozen, every)
     dtype = model.body_pos.dtype
     row = lambda x: jnp.reshape(jnp.asarray(x, dtype), (1, -1))  # noqa: E731
     status = jnp.stack([jnp.zeros((), dtype), jnp.asarray(steps, dtype), jnp.zeros((), dtype)])
-    kernel = compiled_kernel(model.tree, model.joints, False, np.dtype(dtype), "rk4_run_vjp")
-    ct_q, ct_v = kernel.batched(*rows, row(saved), row(status), row(cotangent_q), row(cotangent_v), row(cotangent_work))
+    kernel = compiled_kernel(model.tree, model.joints, False, np.dtype(dtype), "rk4_run_vjp", harmonics)
+    ct_q, ct_v = kernel.batched(*rows, row(saved), row(status), row(cotangent_q), row(cotangent_v),
+                                work_row(cotangent_work, harmonics, dtype))
     return ct_q[0], ct_v[0]
