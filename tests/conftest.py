@@ -21,8 +21,8 @@ set_default_xla_flags()  # before the backend starts
 # level, 60 s at level 0). The tests check numbers against references to tolerances, which do
 # not depend on how fast the code runs, so they compile at level 0: the HLO programs and their
 # arithmetic are XLA's, only instruction selection differs. The exceptions, tests of a property
-# only optimised code has (two differently compiled programs agreeing bit for bit, a rounding
-# error that needs the fused multiply-adds the optimiser makes), carry the marker
+# only optimised code has (a rounding error that needs the fused multiply-adds the optimiser
+# makes, two programs that round alike only with them), carry the marker
 # ``default_optimisation`` and run in a subprocess at the default levels (below). The native
 # kernel's C++ is built at -O0 likewise.
 # JAXBODY_TEST_XLA_OPTIMISATION=default runs the whole suite at the default level.
