@@ -19,6 +19,7 @@ from jax import lax
 
 from .. import linalg
 from .._types import Array
+from .._util import compiled_when_eager
 from ..linalg import gauss_jordan, solve_general
 from ..model import Model
 from .systems import SINGULAR_PIVOT, MaggiResult, ModelBase
@@ -112,12 +113,14 @@ class ConstrainedSystem(eqx.Module):
         return self.base.total_energy(q, v)
 
     # -- constraint functions ------------------------------------------------------------
+    @compiled_when_eager
     def constraint_residual(self, t, q, x) -> Array:
         """``f*(t, q, x)`` of all constraints, concatenated (s,)."""
         if not self.constraints:
             return jnp.zeros((0,), jnp.asarray(x).dtype)
         return jnp.concatenate([c.velocity(self.base, t, q, x) for c in self.constraints])
 
+    @compiled_when_eager
     def position_residual(self, t, q) -> Array:
         """``φ(t, q)`` of the holonomic rows, zero on non-holonomic rows (s,)."""
         parts = []
@@ -129,6 +132,7 @@ class ConstrainedSystem(eqx.Module):
             parts.append(jnp.zeros((c.size,), q.dtype) if p is None else p)
         return jnp.concatenate(parts) if parts else jnp.zeros((0,), q.dtype)
 
+    @compiled_when_eager
     def constraint_jacobian(self, t, q, x) -> Array:
         """``G = ∂f*/∂x`` (s, n)."""
         return jax.jacfwd(lambda xx: self.constraint_residual(t, q, xx))(x)
@@ -306,6 +310,7 @@ class ConstrainedSystem(eqx.Module):
         sys = self._on_scene(ctx)
         return sys.position_residual(t, ctx.q), sys.constraint_residual(t, ctx.q, v)
 
+    @compiled_when_eager
     def kinetic_metric(self, t, q, x) -> Array:
         """``D(q)``: the mass matrix in quasi-velocities."""
         return self.base.bracket_terms(t, q, x, None)[0]
