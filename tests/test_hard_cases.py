@@ -20,6 +20,7 @@ from scipy.spatial.transform import Rotation
 
 import jaxbody as jb
 from jaxbody.examples import disk as dk
+from jaxbody.scene import CoordinateChart
 
 from test_constraints import four_bar, four_bar_angles, four_bar_rates
 
@@ -221,30 +222,147 @@ def test_ball_joint_through_quaternion_sign_flip():
     np.testing.assert_allclose(np.linalg.norm(quat, axis=1), 1.0, atol=1e-14)
 
 
+# ------------------------------------------------------------------ leaving a coordinate chart
+def _radius(q):
+    return q[:1]
+
+
+class PolarParticle(eqx.Module):
+    """A free unit point mass in the plane in polar coordinates ``q = (r, φ)``, ``v = (ṙ, φ̇)``:
+    ``r̈ = r φ̇²``, ``φ̈ = −2 ṙ φ̇ / r``. The chart ends at the origin (``r = 0``), which a particle
+    aimed within ``bound`` of it reaches in finite time while its Cartesian motion stays regular."""
+
+    bound: float = eqx.field(static=True, default=1e-3)
+    nq = 2
+    nv = 2
+
+    def qdot(self, q, v):
+        return v
+
+    def acceleration(self, t, q, v, tau=None):
+        return jnp.stack([q[0] * v[1] ** 2, -2 * v[0] * v[1] / q[0]])
+
+    def total_energy(self, q, v):
+        return 0.5 * (v[0] ** 2 + (q[0] * v[1]) ** 2)
+
+    def coordinate_chart(self):
+        return CoordinateChart(name="polar coordinates (r, φ)", coordinates=("r",), margins=_radius,
+                                        bound=self.bound, advice="Integrate in Cartesian coordinates instead")
+
+
+def polar_start(miss):
+    """From ``(1, miss)`` at unit speed along −x: it passes the origin at distance ``miss`` at t = 1."""
+    x, y, vx, vy = 1.0, miss, -1.0, 0.0
+    r = np.hypot(x, y)
+    return jnp.array([r, np.arctan2(y, x)]), jnp.array([(x * vx + y * vy) / r, (x * vy - y * vx) / r**2])
+
+
+def polar_exact(miss, t):
+    """Cartesian position at ``t`` of :func:`polar_start`'s particle (a straight line)."""
+    return np.stack([1.0 - np.asarray(t), np.full_like(np.asarray(t, float), miss)], axis=-1)
+
+
+def cartesian(q):
+    q = np.asarray(q)
+    return np.stack([q[..., 0] * np.cos(q[..., 1]), q[..., 0] * np.sin(q[..., 1])], axis=-1)
+
+
+HIT, MISS = 1e-4, 0.1  # passes the origin inside the chart's bound 1e-3 / well outside it
+POLAR_CASES = {"adaptive": dict(solver="tsit5", rtol=1e-10, atol=1e-10, n_save=5),
+               "fixed": dict(solver="rk4", dt0=1e-4, n_save=5)}
+
+
+@pytest.mark.parametrize("case", sorted(POLAR_CASES))
+def test_leaving_the_coordinate_chart_stops_with_its_name(case):
+    """The step guard stops a solve whose accepted step leaves the scene's declared chart: result
+    ``singular`` at the first step that ends with r at or below the bound (the exact crossing time
+    from the straight line), the state there still equal to the exact motion; the message names the
+    chart, the coordinate, the time and the advice, eagerly and when raised. In a batch the member
+    that misses the origin finishes and equals its own solve (adaptive: the step guard's code;
+    fixed steps: the recorded failure)."""
+    kw = POLAR_CASES[case]
+    system = PolarParticle()
+    t_cross = 1.0 - np.sqrt(system.bound**2 - HIT**2)  # |r(t)| = bound on the way in
+    q0, v0 = polar_start(HIT)
+    sol = jb.simulate(system, q0, v0, 2.0, throw=False, **kw)
+    assert not bool(sol.success) and bool(sol.result == jb.RESULTS.singular)
+    tf = float(sol.t_final)
+    assert t_cross <= tf and float(sol.q_final[0]) <= system.bound
+    if case == "fixed":
+        assert tf < t_cross + 1e-4 + 1e-12  # the first step past the crossing
+        assert int(sol.stats["num_steps"]) == round(tf / 1e-4)
+    np.testing.assert_allclose(cartesian(sol.q_final), polar_exact(HIT, tf), atol=1e-7)
+    why = jb.simulation.explain_failure(system, sol, 0.0, 2.0)
+    assert why.startswith("the coordinates left their chart, the polar coordinates (r, φ): r = ")
+    assert f"at t = {tf:.6g}" in why and "bound 0.001" in why and "Cartesian coordinates instead" in why
+    with pytest.raises(jb.SimulationError, match=r"failed at t = .*left their chart, the polar coordinates \(r, φ\): r ="):
+        jb.simulate(system, q0, v0, 2.0, **kw)
+    q1, v1 = polar_start(MISS)
+    batch = jb.simulate_batch(system, jnp.stack([q0, q1]), jnp.stack([v0, v1]), 2.0, **kw)
+    assert not bool(batch.success[0]) and bool(batch[0].result == jb.RESULTS.singular) and bool(batch.success[1])
+    # a vmapped adaptive solve rounds its step sizes apart from the unbatched one by ulps
+    np.testing.assert_allclose(float(batch.t_final[0]), tf, rtol=0, atol=1e-10)
+    alone = jb.simulate(system, q1, v1, 2.0, **kw)
+    np.testing.assert_allclose(np.asarray(batch.q_final[1]), np.asarray(alone.q_final), rtol=0, atol=1e-10)
+    np.testing.assert_allclose(cartesian(alone.q_final), polar_exact(MISS, 2.0), atol=1e-6)
+
+
+def test_chart_failure_raised_from_a_compiled_solve():
+    """Under ``jit`` the raised message names the chart too (margins computed in the program)."""
+    system = PolarParticle()
+    q0, v0 = polar_start(HIT)
+    run = jax.jit(lambda q0, v0: jb.simulate(system, q0, v0, 2.0, **POLAR_CASES["adaptive"]).q_final)
+    with pytest.raises(Exception, match=r"left their chart, the polar coordinates \(r, φ\): r = .* at t = 0\.999"):
+        run(q0, v0)
+
+
 # -------------------------------------------------------------------- rolling disk nearly flat
+def flat_disk_start(theta0=0.05, precession=3.0):
+    """The rolling disk nearly flat, precessing, not spinning: the contact point rests, so the
+    centre moves at −ρψ̇ cos θ along x₁."""
+    roll = dk.rolling_disk()
+    q0 = jnp.array([0.0, 0.0, 0.0, theta0, 0.0])
+    x0 = dk.initial_velocities(roll, q0, jnp.array([-0.3 * precession * np.cos(theta0), 0.0, precession, 0.0, 0.0]))
+    return roll, q0, x0
+
+
 @pytest.mark.slow
 def test_rolling_disk_falling_flat():
     """The rolling disk started at θ = 0.05 rad (nearly flat) falls onto the plane: θ → 0 while
     ψ̇ sin θ stays non-zero, so ψ̇ = x₂ / sin θ of its Euler-angle kinematics grows without bound
     (the disk lands flat; the continuous-contact model ends there too). Up to the landing the motion
-    is integrated accurately (energy, rolling constraints); the solve never steps across θ = 0: it
-    stops short of it with a failed result and a finite state, and an event on sin θ stops it there
-    cleanly."""
-    roll = dk.rolling_disk()
-    theta0, precession = 0.05, 3.0
-    q0 = jnp.array([0.0, 0.0, 0.0, theta0, 0.0])
-    # precessing, not spinning: the contact point rests, so the centre moves at −ρψ̇ cos θ along x₁
-    x0 = dk.initial_velocities(roll, q0, jnp.array([-0.3 * precession * np.cos(theta0), 0.0, precession, 0.0, 0.0]))
+    is integrated accurately (energy, rolling constraints); the solve stops where |sin θ| reaches the
+    disk's chart bound with the result ``singular`` and a message naming the chart, sin θ and the
+    time (eagerly, raised, and for the member of a batch whose other member finishes), and an event
+    on sin θ stops it there cleanly."""
+    roll, q0, x0 = flat_disk_start()
     kw = dict(rtol=1e-10, atol=1e-10, n_save=7, throw=False)
     before = jb.simulate(roll, q0, x0, 0.06, max_steps=2_000, **kw)
     assert before.success and 0 < float(before.q[-1, 3]) < 5e-3
     assert float(before.energy_drift) < 1e-8
     assert float(jnp.max(jnp.abs(before.constraint_drift["velocity"]))) < 1e-8
     across = jb.simulate(roll, q0, x0, 0.1, max_steps=2_000, **kw)
-    assert not across.success and 0.06 < float(across.t_final) < 0.0615
-    assert np.isfinite(np.asarray(across.q_final)).all() and float(across.q_final[3]) > 0
-    with pytest.raises(jb.SimulationError, match="failed at t = 0.061"):
+    bound = float(np.finfo(np.float64).eps) ** 0.25
+    assert bool(across.result == jb.RESULTS.singular) and 0.06 < float(across.t_final) < 0.0615
+    assert np.isfinite(np.asarray(across.q_final)).all() and 0 < float(across.q_final[3]) <= bound
+    # well within the step budget: the guard stops it, not max_steps
+    assert int(across.stats["num_steps"]) < 500
+    why = jb.simulation.explain_failure(roll, across, 0.0, 0.1)
+    assert why.startswith("the coordinates left their chart, the z-x-z Euler angles (ψ, θ, φ) of the disk: |sin θ|")
+    assert f"t = {float(across.t_final):.6g}" in why and "jb.Event(lambda t, q, x: jnp.sin(q[3]) - h" in why
+    with pytest.raises(jb.SimulationError, match=r"failed at t = 0\.061.*left their chart.*\|sin θ\|"):
         jb.simulate(roll, q0, x0, 0.1, max_steps=2_000, **{**kw, "throw": True})
+    # a batch: the nearly flat disk beside one started steeper (θ = 0.3), which stays up until 0.1 s
+    roll2, q1, x1 = flat_disk_start(theta0=0.3)
+    batch = jb.simulate_batch(roll, jnp.stack([q0, q1]), jnp.stack([x0, x1]), 0.1, max_steps=2_000, **kw)
+    assert bool(batch[0].result == jb.RESULTS.singular) and bool(batch.success[1])
+    # the vmapped program rounds apart from the unbatched one, and the last steps before the bound
+    # are short: the member stops at a neighbouring accepted step, below the same bound
+    assert 0 < float(batch.q_final[0, 3]) <= bound
+    np.testing.assert_allclose(float(batch.t_final[0]), float(across.t_final), rtol=0, atol=1e-5)
+    alone = jb.simulate(roll, q1, x1, 0.1, max_steps=2_000, **kw)
+    np.testing.assert_allclose(np.asarray(batch.q_final[1]), np.asarray(alone.q_final), rtol=0, atol=1e-12)
+    assert "left their chart" in jb.simulation.explain_failure(roll, batch[0], 0.0, 0.1)
     stop = jb.Event(lambda t, q, x: jnp.sin(q[3]) - 1e-3, direction=False)
     landed = jb.simulate(roll, q0, x0, 0.1, max_steps=2_000, event=stop, **kw)
     assert landed.success

@@ -111,6 +111,12 @@ class ConstrainedSystem(eqx.Module):
     def total_energy(self, q, v):
         return self.base.total_energy(q, v)
 
+    def coordinate_chart(self):
+        """The base system's chart (:class:`jaxbody.scene.CoordinateChart`), or ``None``: the
+        constraints restrict the motion, not where the coordinates are regular."""
+        declare = getattr(self.base, "coordinate_chart", None)
+        return declare() if callable(declare) else None
+
     # -- constraint functions ------------------------------------------------------------
     def constraint_residual(self, t, q, x) -> Array:
         """``f*(t, q, x)`` of all constraints, concatenated (s,)."""
