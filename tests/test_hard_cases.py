@@ -5,8 +5,9 @@ References are independent of the code under test: MuJoCo's ``mj_forward`` on th
 (built here as text), the closed forms of the papers (Example 5's reaction, a free rotation),
 energy conservation, converged high-order runs, finite differences, and the unbatched solves.
 The default suite keeps the cheap cases (a short chaotic run, the long chain and the mass ratios
-against MuJoCo, Example 5's reaction, the quaternion sign flip, a bad member in a batch on the default
-kernel); the long runs and the costly compilations are marked ``slow``.
+against MuJoCo, Example 5's reaction, the quaternion sign flip, a solve leaving its coordinate chart,
+a bad member in a batch on the default kernel); the long runs and the costly compilations are marked
+``slow``.
 """
 
 import diffrax
@@ -475,11 +476,15 @@ def _batch_inputs(model):
     return q0s, v0s, masses
 
 
-def _check_bad_member(kernel, solver_kw, members):
+def _check_bad_member(kernel, solver_kw):
+    """The batch with its two bad members against every member solved alone: the unbatched
+    solves run as one ``lax.map`` over the members (one compiled program, each member traced
+    without a batch axis), so all 1022 good members are compared, bit for bit up to rounding."""
     model = jb.from_mjcf(BALL_CHAIN)
     scene = jb.scene(model, kernel=kernel)
     q0s, v0s, masses = _batch_inputs(model)
-    scenes = jax.vmap(lambda m: eqx.tree_at(lambda s: s.system.body_mass, scene, m))(jnp.asarray(masses))
+    with_mass = lambda m: eqx.tree_at(lambda s: s.system.body_mass, scene, m)  # noqa: E731
+    scenes = jax.vmap(with_mass)(jnp.asarray(masses))
     sol = jb.simulate_batch(scenes, q0s, v0s, 0.3, batched_system=True, **solver_kw)
     ok = np.ones(N_BATCH, bool)
     ok[[BAD_PARAMETER, BAD_STATE]] = False
@@ -487,13 +492,26 @@ def _check_bad_member(kernel, solver_kw, members):
     assert not success[BAD_PARAMETER] and not success[BAD_STATE]
     assert success[ok].all()
     assert np.isfinite(np.asarray(sol.q_final)[ok]).all()
-    one = jax.jit(lambda s, q0, v0: jb.simulate(s, q0, v0, 0.3, throw=False, **solver_kw))
-    for i in members:
-        alone = one(eqx.tree_at(lambda s: s.system.body_mass, scene, jnp.asarray(masses[i])), q0s[i], v0s[i])
-        assert bool(alone.success) == bool(success[i])
-        if success[i]:
-            np.testing.assert_allclose(np.asarray(sol.q_final[i]), np.asarray(alone.q_final), rtol=0, atol=1e-12)
-            np.testing.assert_allclose(np.asarray(sol.v_final[i]), np.asarray(alone.v_final), rtol=0, atol=1e-11)
+
+    # fixed steps: the end state alone, without the work integrals (the same steps, and the work
+    # does not feed back into the motion) in a program that compiles in half the time; an adaptive
+    # solve keeps its saves, which decide whether it runs as one native call
+    end_only = dict(solver_kw)
+    if "dt0" in solver_kw:
+        end_only.pop("n_save", None)
+        end_only.setdefault("saveat", diffrax.SaveAt(t1=True))
+        end_only["track_work"] = False
+
+    def alone(member):
+        m, q0, v0 = member
+        out = jb.simulate(with_mass(m), q0, v0, 0.3, throw=False, **end_only)
+        return out.success, out.q_final, out.v_final
+
+    each = jax.jit(lambda *members: jax.lax.map(alone, members))
+    alone_success, alone_q, alone_v = (np.asarray(x) for x in each(jnp.asarray(masses), jnp.asarray(q0s), jnp.asarray(v0s)))
+    np.testing.assert_array_equal(alone_success, success)
+    np.testing.assert_allclose(np.asarray(sol.q_final)[ok], alone_q[ok], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(sol.v_final)[ok], alone_v[ok], rtol=0, atol=1e-11)
 
 
 BATCH_CASES = {
@@ -508,14 +526,14 @@ BATCH_CASES = {
 @pytest.mark.parametrize("case", ["vectorised"])
 def test_bad_member_leaves_the_batch_alone(case):
     kernel, kw = BATCH_CASES[case]
-    _check_bad_member(kernel, kw, members=(0, 4, 6, 699, 701, 1023))
+    _check_bad_member(kernel, kw)
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("case", ["unrolled", "native", "native_one_call"])
 def test_bad_member_leaves_the_batch_alone_every_kernel(case):
     kernel, kw = BATCH_CASES[case]
-    _check_bad_member(kernel, kw, members=(0, 4, 6, 699, 701, 1023))
+    _check_bad_member(kernel, kw)
 
 
 # ------------------------------------------------------------------------------ the stiff chain
