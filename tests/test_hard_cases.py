@@ -185,6 +185,13 @@ def four_bar_scene():
     return jb.scene(cs.base.model, constraints=cs)
 
 
+def four_bar_start():
+    """The crank at 0.6 rad turning at 12 rad/s, in the scene's relative coordinates."""
+    th = four_bar_angles(0.6)
+    w = four_bar_rates(th, 12.0)
+    return np.array([th[0], th[1] - th[0], th[2]]), np.array([w[0], w[1] - w[0], w[2]])
+
+
 @pytest.mark.slow
 def test_four_bar_through_folded_configuration(four_bar_scene):
     """The crank turns full circles, through the configurations where crank and coupler are
@@ -269,6 +276,7 @@ def cartesian(q):
 
 
 HIT, MISS = 1e-4, 0.1  # passes the origin inside the chart's bound 1e-3 / well outside it
+T_POLAR = 1.2
 POLAR_CASES = {"adaptive": dict(solver="tsit5", rtol=1e-10, atol=1e-10, n_save=5),
                "fixed": dict(solver="rk4", dt0=1e-4, n_save=5)}
 
@@ -285,7 +293,7 @@ def test_leaving_the_coordinate_chart_stops_with_its_name(case):
     system = PolarParticle()
     t_cross = 1.0 - np.sqrt(system.bound**2 - HIT**2)  # |r(t)| = bound on the way in
     q0, v0 = polar_start(HIT)
-    sol = jb.simulate(system, q0, v0, 2.0, throw=False, **kw)
+    sol = jb.simulate(system, q0, v0, T_POLAR, throw=False, **kw)
     assert not bool(sol.success) and bool(sol.result == jb.RESULTS.singular)
     tf = float(sol.t_final)
     assert t_cross <= tf and float(sol.q_final[0]) <= system.bound
@@ -293,26 +301,26 @@ def test_leaving_the_coordinate_chart_stops_with_its_name(case):
         assert tf < t_cross + 1e-4 + 1e-12  # the first step past the crossing
         assert int(sol.stats["num_steps"]) == round(tf / 1e-4)
     np.testing.assert_allclose(cartesian(sol.q_final), polar_exact(HIT, tf), atol=1e-7)
-    why = jb.simulation.explain_failure(system, sol, 0.0, 2.0)
+    why = jb.simulation.explain_failure(system, sol, 0.0, T_POLAR)
     assert why.startswith("the coordinates left their chart, the polar coordinates (r, φ): r = ")
     assert f"at t = {tf:.6g}" in why and "bound 0.001" in why and "Cartesian coordinates instead" in why
     with pytest.raises(jb.SimulationError, match=r"failed at t = .*left their chart, the polar coordinates \(r, φ\): r ="):
-        jb.simulate(system, q0, v0, 2.0, **kw)
+        jb.simulate(system, q0, v0, T_POLAR, **kw)
     q1, v1 = polar_start(MISS)
-    batch = jb.simulate_batch(system, jnp.stack([q0, q1]), jnp.stack([v0, v1]), 2.0, **kw)
+    batch = jb.simulate_batch(system, jnp.stack([q0, q1]), jnp.stack([v0, v1]), T_POLAR, **kw)
     assert not bool(batch.success[0]) and bool(batch[0].result == jb.RESULTS.singular) and bool(batch.success[1])
     # a vmapped adaptive solve rounds its step sizes apart from the unbatched one by ulps
     np.testing.assert_allclose(float(batch.t_final[0]), tf, rtol=0, atol=1e-10)
-    alone = jb.simulate(system, q1, v1, 2.0, **kw)
+    alone = jb.simulate(system, q1, v1, T_POLAR, **kw)
     np.testing.assert_allclose(np.asarray(batch.q_final[1]), np.asarray(alone.q_final), rtol=0, atol=1e-10)
-    np.testing.assert_allclose(cartesian(alone.q_final), polar_exact(MISS, 2.0), atol=1e-6)
+    np.testing.assert_allclose(cartesian(alone.q_final), polar_exact(MISS, T_POLAR), atol=1e-6)
 
 
 def test_chart_failure_raised_from_a_compiled_solve():
     """Under ``jit`` the raised message names the chart too (margins computed in the program)."""
     system = PolarParticle()
     q0, v0 = polar_start(HIT)
-    run = jax.jit(lambda q0, v0: jb.simulate(system, q0, v0, 2.0, **POLAR_CASES["adaptive"]).q_final)
+    run = jax.jit(lambda q0, v0: jb.simulate(system, q0, v0, T_POLAR, **POLAR_CASES["adaptive"]).q_final)
     with pytest.raises(Exception, match=r"left their chart, the polar coordinates \(r, φ\): r = .* at t = 0\.999"):
         run(q0, v0)
 
@@ -397,6 +405,120 @@ def test_float32_long_chain_and_mass_ratios_within_conditioning(long_chain):
         err = np.max(np.abs(a32 - ref)) / np.max(np.abs(ref))
         assert err <= 10 * cond * eps32, (err, cond)
         print(f"float32: n = {model64.nv}, cond(M) = {cond:.2e}, relative error {err:.2e}")
+
+
+# ------------------------------------------------ float32 on the singular and stiff scenes
+EPS32 = float(np.finfo(np.float32).eps)
+
+
+def to_dtype(tree, dtype):
+    """Every floating array of a model or system in ``dtype`` (integers and static fields kept)."""
+    return jax.tree.map(lambda x: x.astype(dtype) if eqx.is_inexact_array(x) else x, tree)
+
+
+def test_float32_example5_reaction_near_the_horizontal_links():
+    """Float32 keeps Example 5's reaction near φ = π/2 to float32 round-off: F_r cos φ equals the
+    closed form (evaluated at the float32 angle) to a few ulps down to cos φ ≈ 1e-4."""
+    ex5 = to_dtype(jb.examples.vertical_line_double_pendulum(), np.float32)
+    reaction = eqx.filter_jit(ex5.reaction)
+    for delta in (1e-2, 1e-4):
+        for dphi in (0.0, 1.3):
+            phi = float(np.float32(np.pi / 2 - delta))
+            fr = reaction(jnp.array([phi], np.float32), jnp.array([dphi], np.float32))
+            assert fr.dtype == jnp.float32
+            np.testing.assert_allclose(float(fr) * np.cos(phi), example5_reaction_times_cos(phi, dphi), rtol=50 * EPS32)
+
+
+def test_float32_ball_joint_through_quaternion_sign_flip():
+    """The free rotation through the quaternion's sign flip in float32 (``tsit5`` at 1e-5): no NaN,
+    the attitude follows exp(tω̂) and the quaternion stays unit, to the solver's tolerance, and
+    continuous through the flip."""
+    b = jb.ModelBuilder(gravity=(0, 0, 0))
+    # (0.3, 0.2, 0.1), the float64 case's thin plate, is on the triangle inequality's edge, which
+    # float32 rounding crosses (0.1 + 0.2 < 0.3): a body clear of it
+    b.add_body("top", mass=1.0, com=(0, 0, 0), inertia=(0.3, 0.2, 0.12), joints=[jb.Ball()])
+    model = b.build(dtype=np.float32)
+    omega = np.array([0.0, 0.0, 2 * np.pi])
+    sol = jb.simulate(model, jnp.array([1.0, 0, 0, 0], np.float32), jnp.asarray(omega, np.float32),
+                      jnp.asarray(1.0, np.float32), solver="tsit5", rtol=1e-5, atol=1e-5, n_save=21)
+    quat = np.asarray(sol.q, np.float64)
+    assert sol.q.dtype == jnp.float32 and bool(sol.success) and np.isfinite(quat).all()
+    assert quat[0, 0] > 0.99 and quat[-1, 0] < -0.99 and np.max(np.abs(np.diff(quat, axis=0))) < 0.2
+    for t, qt in zip(np.asarray(sol.t, np.float64), quat):
+        ref = Rotation.from_rotvec(omega * t).as_matrix()
+        # to the solver's tolerance (1e-5 per step, accumulated over the turn)
+        np.testing.assert_allclose(Rotation.from_quat(qt[[1, 2, 3, 0]]).as_matrix(), ref, atol=1e-4)
+    # every step ends on the unit sphere; the saved points between steps are interpolated, off it by
+    # the solver's tolerance
+    np.testing.assert_allclose(np.linalg.norm(quat, axis=1), 1.0, atol=1e-4)
+
+
+@pytest.mark.slow
+def test_float32_stiff_chain_kvaerno5():
+    """The stiff chain (springs 1 to 1e6, critically damped) in float32 with ``kvaerno5`` at 1e-5:
+    finite and within 1e-5 of float64, but the Newton iterations cannot meet the tolerance in float32
+    (the 1e6 spring's torque cancels to a small difference): hundreds of times the steps of float64
+    at the same tolerance, most of them rejected. The documented advice: stiff springs in float64."""
+    damping, q0, _, _ = STIFF_CASES["critically_damped"]
+    xml = chain_mjcf(5, stiffness=STIFFNESS, damping=damping(), axes=("0 1 0",))
+    kw = dict(solver="kvaerno5", n_save=21, max_steps=100_000)
+    runs = {}
+    for dtype, tol in ((np.float64, 1e-10), (np.float64, 1e-5), (np.float32, 1e-5)):
+        scene = jb.scene(jb.from_mjcf(xml, dtype=dtype), planar=False)
+        runs[dtype, tol] = jb.simulate(scene, jnp.asarray(q0, dtype), jnp.zeros(5, dtype), jnp.asarray(0.05, dtype),
+                                       rtol=tol, atol=tol, **kw)
+    s32, ref, s64 = runs[np.float32, 1e-5], runs[np.float64, 1e-10], runs[np.float64, 1e-5]
+    assert s32.q.dtype == jnp.float32 and bool(s32.success) and np.isfinite(np.asarray(s32.q)).all()
+    assert np.max(np.abs(np.asarray(s32.q, np.float64) - np.asarray(ref.q))) < 1e-5
+    steps = int(s32.stats["num_steps"]), int(s64.stats["num_steps"])
+    print(f"stiff chain, kvaerno5 at 1e-5 over 0.05 s: float32 {steps[0]} steps, float64 {steps[1]}")
+    assert steps[0] > 20 * steps[1], steps
+
+
+@pytest.mark.slow
+def test_float32_rolling_disk_falling_flat():
+    """The nearly flat rolling disk in float32: it follows float64 to 1e-4 while it falls, and stops
+    at float32's chart bound (|sin θ| ≤ ε₃₂^(1/4) = 1.8e-2), earlier than float64, with the same
+    message naming the chart."""
+    runs = {}
+    for dtype, tol in ((np.float64, 1e-10), (np.float32, 1e-5)):
+        roll = dk.rolling_disk(*(jnp.asarray(x, dtype) for x in (2.0, 0.3, 9.81)))
+        q0 = jnp.array([0.0, 0.0, 0.0, 0.05, 0.0], dtype)
+        x0 = dk.initial_velocities(roll, q0, jnp.array([-0.9 * np.cos(0.05), 0.0, 3.0, 0.0, 0.0], dtype),
+                                   atol=1e-5 if dtype == np.float32 else 1e-9)
+        runs[dtype] = roll, jb.simulate(roll, q0, x0, jnp.asarray(0.1, dtype), rtol=tol, atol=tol, max_steps=4_000,
+                                        saveat=jnp.linspace(0, 0.05, 6).astype(dtype), throw=False)
+    roll, s32 = runs[np.float32]
+    s64 = runs[np.float64][1]
+    assert s32.q.dtype == jnp.float32 and bool(s32.result == jb.RESULTS.singular)
+    assert 0.05 < float(s32.t_final) < float(s64.t_final)
+    assert float(jnp.sin(s32.q_final[3])) <= EPS32**0.25 < 0.02
+    assert "left their chart" in jb.simulation.explain_failure(roll, s32, 0.0, 0.1)
+    np.testing.assert_allclose(np.asarray(s32.q, np.float64), np.asarray(s64.q), atol=1e-4)
+    np.testing.assert_allclose(np.asarray(s32.v, np.float64), np.asarray(s64.v), atol=1e-4)
+
+
+@pytest.mark.slow
+def test_float32_example5_and_four_bar_through_their_singular_configurations(four_bar_scene):
+    """Example 5 through φ = π/2 and the four-bar through its folded configuration in float32
+    (``tsit5`` at 1e-5): no NaN, energy and constraints within 1e-4, the motion within 1e-3 of
+    float64."""
+    ex64 = jb.examples.vertical_line_double_pendulum()
+    for system, q0, v0, t1, checks in (
+        (ex64, np.array([1.2]), np.array([5.0]), 1.0, ()),
+        (four_bar_scene, *four_bar_start(), 1.5, ("position",)),
+    ):
+        sols = {}
+        for dtype, tol in ((np.float64, 1e-10), (np.float32, 1e-5)):
+            sys_d = system if dtype == np.float64 else to_dtype(system, dtype)
+            sols[dtype] = jb.simulate(sys_d, jnp.asarray(q0, dtype), jnp.asarray(v0, dtype), jnp.asarray(t1, dtype),
+                                      solver="tsit5", rtol=tol, atol=tol, n_save=51)
+        s32, s64 = sols[np.float32], sols[np.float64]
+        assert s32.q.dtype == jnp.float32 and bool(s32.success) and np.isfinite(np.asarray(s32.q)).all()
+        assert float(s32.energy_drift) < 1e-4
+        for kind in checks:
+            assert float(jnp.max(jnp.abs(s32.constraint_drift[kind]))) < 1e-4
+        np.testing.assert_allclose(np.asarray(s32.q, np.float64), np.asarray(s64.q), atol=1e-3)
 
 
 # ------------------------------------------------------------------------------ gradients
