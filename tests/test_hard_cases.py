@@ -471,7 +471,9 @@ def test_float32_stiff_chain_kvaerno5():
     assert s32.q.dtype == jnp.float32 and bool(s32.success) and np.isfinite(np.asarray(s32.q)).all()
     assert np.max(np.abs(np.asarray(s32.q, np.float64) - np.asarray(ref.q))) < 1e-5
     steps = int(s32.stats["num_steps"]), int(s64.stats["num_steps"])
-    print(f"stiff chain, kvaerno5 at 1e-5 over 0.05 s: float32 {steps[0]} steps, float64 {steps[1]}")
+    print(f"stiff chain, kvaerno5 at 1e-5 over 0.05 s: float32 {steps[0]} steps ({int(s32.stats['num_rejected_steps'])} "
+          f"rejected), float64 {steps[1]}; max |q32 - q64| = "
+          f"{np.max(np.abs(np.asarray(s32.q, np.float64) - np.asarray(ref.q))):.2g}")
     assert steps[0] > 20 * steps[1], steps
 
 
@@ -494,6 +496,9 @@ def test_float32_rolling_disk_falling_flat():
     assert 0.05 < float(s32.t_final) < float(s64.t_final)
     assert float(jnp.sin(s32.q_final[3])) <= EPS32**0.25 < 0.02
     assert "left their chart" in jb.simulation.explain_failure(roll, s32, 0.0, 0.1)
+    print(f"flat disk, float32: stopped at t = {float(s32.t_final):.4g} (float64: {float(s64.t_final):.4g}), "
+          f"max |q32 - q64| up to 0.05 s = {np.max(np.abs(np.asarray(s32.q, np.float64) - np.asarray(s64.q))):.2g}, "
+          f"|v32 - v64| = {np.max(np.abs(np.asarray(s32.v, np.float64) - np.asarray(s64.v))):.2g}")
     np.testing.assert_allclose(np.asarray(s32.q, np.float64), np.asarray(s64.q), atol=1e-4)
     np.testing.assert_allclose(np.asarray(s32.v, np.float64), np.asarray(s64.v), atol=1e-4)
 
@@ -504,9 +509,9 @@ def test_float32_example5_and_four_bar_through_their_singular_configurations(fou
     (``tsit5`` at 1e-5): no NaN, energy and constraints within 1e-4, the motion within 1e-3 of
     float64."""
     ex64 = jb.examples.vertical_line_double_pendulum()
-    for system, q0, v0, t1, checks in (
-        (ex64, np.array([1.2]), np.array([5.0]), 1.0, ()),
-        (four_bar_scene, *four_bar_start(), 1.5, ("position",)),
+    for name, system, q0, v0, t1, checks in (
+        ("Example 5", ex64, np.array([1.2]), np.array([5.0]), 1.0, ()),
+        ("four-bar", four_bar_scene, *four_bar_start(), 1.5, ("position",)),
     ):
         sols = {}
         for dtype, tol in ((np.float64, 1e-10), (np.float32, 1e-5)):
@@ -514,6 +519,10 @@ def test_float32_example5_and_four_bar_through_their_singular_configurations(fou
             sols[dtype] = jb.simulate(sys_d, jnp.asarray(q0, dtype), jnp.asarray(v0, dtype), jnp.asarray(t1, dtype),
                                       solver="tsit5", rtol=tol, atol=tol, n_save=51)
         s32, s64 = sols[np.float32], sols[np.float64]
+        drift = {k: float(jnp.max(jnp.abs(s32.constraint_drift[k]))) for k in checks}
+        print(f"{name}, float32: energy drift {float(s32.energy_drift):.2g}, constraints {drift}, "
+              f"max |q32 - q64| = {np.max(np.abs(np.asarray(s32.q, np.float64) - np.asarray(s64.q))):.2g}, "
+              f"{int(s32.stats['num_steps'])} steps")
         assert s32.q.dtype == jnp.float32 and bool(s32.success) and np.isfinite(np.asarray(s32.q)).all()
         assert float(s32.energy_drift) < 1e-4
         for kind in checks:
