@@ -355,6 +355,8 @@ def test_rolling_disk_falling_flat():
     assert bool(across.result == jb.RESULTS.singular) and 0.06 < float(across.t_final) < 0.0615
     assert np.isfinite(np.asarray(across.q_final)).all() and 0 < float(across.q_final[3]) <= bound
     # well within the step budget: the guard stops it, not max_steps
+    print(f"flat disk: stopped at t = {float(across.t_final):.4g}, |sin θ| = {float(across.q_final[3]):.3g}, "
+          f"{int(across.stats['num_steps'])} steps")
     assert int(across.stats["num_steps"]) < 500
     why = jb.simulation.explain_failure(roll, across, 0.0, 0.1)
     assert why.startswith("the coordinates left their chart, the z-x-z Euler angles (ψ, θ, φ) of the disk: |sin θ|")
@@ -454,6 +456,7 @@ def test_float32_ball_joint_through_quaternion_sign_flip():
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1800)
 def test_float32_stiff_chain_kvaerno5():
     """The stiff chain (springs 1 to 1e6, critically damped) in float32 with ``kvaerno5`` at 1e-5:
     finite and within 1e-5 of float64, but the Newton iterations cannot meet the tolerance in float32
@@ -465,13 +468,13 @@ def test_float32_stiff_chain_kvaerno5():
     runs = {}
     for dtype, tol in ((np.float64, 1e-10), (np.float64, 1e-5), (np.float32, 1e-5)):
         scene = jb.scene(jb.from_mjcf(xml, dtype=dtype), planar=False)
-        runs[dtype, tol] = jb.simulate(scene, jnp.asarray(q0, dtype), jnp.zeros(5, dtype), jnp.asarray(0.05, dtype),
+        runs[dtype, tol] = jb.simulate(scene, jnp.asarray(q0, dtype), jnp.zeros(5, dtype), jnp.asarray(0.02, dtype),
                                        rtol=tol, atol=tol, **kw)
     s32, ref, s64 = runs[np.float32, 1e-5], runs[np.float64, 1e-10], runs[np.float64, 1e-5]
     assert s32.q.dtype == jnp.float32 and bool(s32.success) and np.isfinite(np.asarray(s32.q)).all()
     assert np.max(np.abs(np.asarray(s32.q, np.float64) - np.asarray(ref.q))) < 1e-5
     steps = int(s32.stats["num_steps"]), int(s64.stats["num_steps"])
-    print(f"stiff chain, kvaerno5 at 1e-5 over 0.05 s: float32 {steps[0]} steps ({int(s32.stats['num_rejected_steps'])} "
+    print(f"stiff chain, kvaerno5 at 1e-5 over 0.02 s: float32 {steps[0]} steps ({int(s32.stats['num_rejected_steps'])} "
           f"rejected), float64 {steps[1]}; max |q32 - q64| = "
           f"{np.max(np.abs(np.asarray(s32.q, np.float64) - np.asarray(ref.q))):.2g}")
     assert steps[0] > 20 * steps[1], steps
