@@ -5,8 +5,9 @@ References are independent of the code under test: MuJoCo's ``mj_forward`` on th
 (built here as text), the closed forms of the papers (Example 5's reaction, a free rotation),
 energy conservation, converged high-order runs, finite differences, and the unbatched solves.
 The default suite keeps the cheap cases (a short chaotic run, the long chain and the mass ratios
-against MuJoCo, Example 5's reaction, the quaternion sign flip, a bad member in a batch on the default
-kernel); the long runs and the costly compilations are marked ``slow``.
+against MuJoCo, Example 5's reaction in float64 and float32, the quaternion sign flip, an adaptive solve
+leaving its coordinate chart, a bad member in a batch on the default kernel); the long runs and the
+costly compilations are marked ``slow``.
 """
 
 import diffrax
@@ -20,6 +21,7 @@ from scipy.spatial.transform import Rotation
 
 import jaxbody as jb
 from jaxbody.examples import disk as dk
+from jaxbody.scene import CoordinateChart
 
 from test_constraints import four_bar, four_bar_angles, four_bar_rates
 
@@ -183,6 +185,13 @@ def four_bar_scene():
     return jb.scene(cs.base.model, constraints=cs)
 
 
+def four_bar_start():
+    """The crank at 0.6 rad turning at 12 rad/s, in the scene's relative coordinates."""
+    th = four_bar_angles(0.6)
+    w = four_bar_rates(th, 12.0)
+    return np.array([th[0], th[1] - th[0], th[2]]), np.array([w[0], w[1] - w[0], w[2]])
+
+
 @pytest.mark.slow
 def test_four_bar_through_folded_configuration(four_bar_scene):
     """The crank turns full circles, through the configurations where crank and coupler are
@@ -221,30 +230,151 @@ def test_ball_joint_through_quaternion_sign_flip():
     np.testing.assert_allclose(np.linalg.norm(quat, axis=1), 1.0, atol=1e-14)
 
 
+# ------------------------------------------------------------------ leaving a coordinate chart
+def _radius(q):
+    return q[:1]
+
+
+class PolarParticle(eqx.Module):
+    """A free unit point mass in the plane in polar coordinates ``q = (r, φ)``, ``v = (ṙ, φ̇)``:
+    ``r̈ = r φ̇²``, ``φ̈ = −2 ṙ φ̇ / r``. The chart ends at the origin (``r = 0``), which a particle
+    aimed within ``bound`` of it reaches in finite time while its Cartesian motion stays regular."""
+
+    bound: float = eqx.field(static=True, default=1e-3)
+    nq = 2
+    nv = 2
+
+    def qdot(self, q, v):
+        return v
+
+    def acceleration(self, t, q, v, tau=None):
+        return jnp.stack([q[0] * v[1] ** 2, -2 * v[0] * v[1] / q[0]])
+
+    def total_energy(self, q, v):
+        return 0.5 * (v[0] ** 2 + (q[0] * v[1]) ** 2)
+
+    def coordinate_chart(self):
+        return CoordinateChart(name="polar coordinates (r, φ)", coordinates=("r",), margins=_radius,
+                                        bound=self.bound, advice="Integrate in Cartesian coordinates instead")
+
+
+def polar_start(miss):
+    """From ``(1, miss)`` at unit speed along −x: it passes the origin at distance ``miss`` at t = 1."""
+    x, y, vx, vy = 1.0, miss, -1.0, 0.0
+    r = np.hypot(x, y)
+    return jnp.array([r, np.arctan2(y, x)]), jnp.array([(x * vx + y * vy) / r, (x * vy - y * vx) / r**2])
+
+
+def polar_exact(miss, t):
+    """Cartesian position at ``t`` of :func:`polar_start`'s particle (a straight line)."""
+    return np.stack([1.0 - np.asarray(t), np.full_like(np.asarray(t, float), miss)], axis=-1)
+
+
+def cartesian(q):
+    q = np.asarray(q)
+    return np.stack([q[..., 0] * np.cos(q[..., 1]), q[..., 0] * np.sin(q[..., 1])], axis=-1)
+
+
+HIT, MISS = 1e-4, 0.1  # passes the origin inside the chart's bound 1e-3 / well outside it
+T_POLAR = 1.2
+POLAR_CASES = {"adaptive": dict(solver="tsit5", rtol=1e-10, atol=1e-10, n_save=5),
+               "fixed": dict(solver="rk4", dt0=1e-4, n_save=5)}
+
+
+# fixed steps (the recorded failure) cost 12,000 steps per solve: slow
+@pytest.mark.parametrize("case", [pytest.param(c, marks=pytest.mark.slow) if c == "fixed" else c for c in sorted(POLAR_CASES)])
+def test_leaving_the_coordinate_chart_stops_with_its_name(case):
+    """The step guard stops a solve whose accepted step leaves the scene's declared chart: result
+    ``singular`` at the first step that ends with r at or below the bound (the exact crossing time
+    from the straight line), the state there still equal to the exact motion; the message names the
+    chart, the coordinate, the time and the advice, eagerly and when raised. In a batch the member
+    that misses the origin finishes and equals its own solve (adaptive: the step guard's code;
+    fixed steps: the recorded failure)."""
+    kw = POLAR_CASES[case]
+    system = PolarParticle()
+    t_cross = 1.0 - np.sqrt(system.bound**2 - HIT**2)  # |r(t)| = bound on the way in
+    q0, v0 = polar_start(HIT)
+    sol = jb.simulate(system, q0, v0, T_POLAR, throw=False, **kw)
+    assert not bool(sol.success) and bool(sol.result == jb.RESULTS.singular)
+    tf = float(sol.t_final)
+    assert t_cross <= tf and float(sol.q_final[0]) <= system.bound
+    if case == "fixed":
+        assert tf < t_cross + 1e-4 + 1e-12  # the first step past the crossing
+        assert int(sol.stats["num_steps"]) == round(tf / 1e-4)
+    np.testing.assert_allclose(cartesian(sol.q_final), polar_exact(HIT, tf), atol=1e-7)
+    why = jb.simulation.explain_failure(system, sol, 0.0, T_POLAR)
+    assert why.startswith("the coordinates left their chart, the polar coordinates (r, φ): r = ")
+    assert f"at t = {tf:.6g}" in why and "bound 0.001" in why and "Cartesian coordinates instead" in why
+    with pytest.raises(jb.SimulationError, match=r"failed at t = .*left their chart, the polar coordinates \(r, φ\): r ="):
+        jb.simulate(system, q0, v0, T_POLAR, **kw)
+    q1, v1 = polar_start(MISS)
+    batch = jb.simulate_batch(system, jnp.stack([q0, q1]), jnp.stack([v0, v1]), T_POLAR, **kw)
+    assert not bool(batch.success[0]) and bool(batch[0].result == jb.RESULTS.singular) and bool(batch.success[1])
+    # a vmapped adaptive solve rounds its step sizes apart from the unbatched one by ulps
+    np.testing.assert_allclose(float(batch.t_final[0]), tf, rtol=0, atol=1e-10)
+    alone = jb.simulate(system, q1, v1, T_POLAR, **kw)
+    np.testing.assert_allclose(np.asarray(batch.q_final[1]), np.asarray(alone.q_final), rtol=0, atol=1e-10)
+    np.testing.assert_allclose(cartesian(alone.q_final), polar_exact(MISS, T_POLAR), atol=1e-6)
+
+
+def test_chart_failure_raised_from_a_compiled_solve():
+    """Under ``jit`` the raised message names the chart too (margins computed in the program)."""
+    system = PolarParticle()
+    q0, v0 = polar_start(HIT)
+    run = jax.jit(lambda q0, v0: jb.simulate(system, q0, v0, T_POLAR, **POLAR_CASES["adaptive"]).q_final)
+    with pytest.raises(Exception, match=r"left their chart, the polar coordinates \(r, φ\): r = .* at t = 0\.999"):
+        run(q0, v0)
+
+
 # -------------------------------------------------------------------- rolling disk nearly flat
+def flat_disk_start(theta0=0.05, precession=3.0):
+    """The rolling disk nearly flat, precessing, not spinning: the contact point rests, so the
+    centre moves at −ρψ̇ cos θ along x₁."""
+    roll = dk.rolling_disk()
+    q0 = jnp.array([0.0, 0.0, 0.0, theta0, 0.0])
+    x0 = dk.initial_velocities(roll, q0, jnp.array([-0.3 * precession * np.cos(theta0), 0.0, precession, 0.0, 0.0]))
+    return roll, q0, x0
+
+
 @pytest.mark.slow
 def test_rolling_disk_falling_flat():
     """The rolling disk started at θ = 0.05 rad (nearly flat) falls onto the plane: θ → 0 while
     ψ̇ sin θ stays non-zero, so ψ̇ = x₂ / sin θ of its Euler-angle kinematics grows without bound
     (the disk lands flat; the continuous-contact model ends there too). Up to the landing the motion
-    is integrated accurately (energy, rolling constraints); the solve never steps across θ = 0: it
-    stops short of it with a failed result and a finite state, and an event on sin θ stops it there
-    cleanly."""
-    roll = dk.rolling_disk()
-    theta0, precession = 0.05, 3.0
-    q0 = jnp.array([0.0, 0.0, 0.0, theta0, 0.0])
-    # precessing, not spinning: the contact point rests, so the centre moves at −ρψ̇ cos θ along x₁
-    x0 = dk.initial_velocities(roll, q0, jnp.array([-0.3 * precession * np.cos(theta0), 0.0, precession, 0.0, 0.0]))
+    is integrated accurately (energy, rolling constraints); the solve stops where |sin θ| reaches the
+    disk's chart bound with the result ``singular`` and a message naming the chart, sin θ and the
+    time (eagerly, raised, and for the member of a batch whose other member finishes), and an event
+    on sin θ stops it there cleanly."""
+    roll, q0, x0 = flat_disk_start()
     kw = dict(rtol=1e-10, atol=1e-10, n_save=7, throw=False)
     before = jb.simulate(roll, q0, x0, 0.06, max_steps=2_000, **kw)
     assert before.success and 0 < float(before.q[-1, 3]) < 5e-3
     assert float(before.energy_drift) < 1e-8
     assert float(jnp.max(jnp.abs(before.constraint_drift["velocity"]))) < 1e-8
     across = jb.simulate(roll, q0, x0, 0.1, max_steps=2_000, **kw)
-    assert not across.success and 0.06 < float(across.t_final) < 0.0615
-    assert np.isfinite(np.asarray(across.q_final)).all() and float(across.q_final[3]) > 0
-    with pytest.raises(jb.SimulationError, match="failed at t = 0.061"):
+    bound = float(np.finfo(np.float64).eps) ** 0.25
+    assert bool(across.result == jb.RESULTS.singular) and 0.06 < float(across.t_final) < 0.0615
+    assert np.isfinite(np.asarray(across.q_final)).all() and 0 < float(across.q_final[3]) <= bound
+    # well within the step budget: the guard stops it, not max_steps
+    print(f"flat disk: stopped at t = {float(across.t_final):.4g}, |sin θ| = {float(across.q_final[3]):.3g}, "
+          f"{int(across.stats['num_steps'])} steps")
+    assert int(across.stats["num_steps"]) < 500
+    why = jb.simulation.explain_failure(roll, across, 0.0, 0.1)
+    assert why.startswith("the coordinates left their chart, the z-x-z Euler angles (ψ, θ, φ) of the disk: |sin θ|")
+    assert f"t = {float(across.t_final):.6g}" in why and "jb.Event(lambda t, q, x: jnp.sin(q[3]) - h" in why
+    with pytest.raises(jb.SimulationError, match=r"failed at t = 0\.061.*left their chart.*\|sin θ\|"):
         jb.simulate(roll, q0, x0, 0.1, max_steps=2_000, **{**kw, "throw": True})
+    # a batch: the nearly flat disk beside one started steeper (θ = 0.3), which stays up until 0.1 s
+    roll2, q1, x1 = flat_disk_start(theta0=0.3)
+    batch = jb.simulate_batch(roll, jnp.stack([q0, q1]), jnp.stack([x0, x1]), 0.1, max_steps=2_000, **kw)
+    assert bool(batch[0].result == jb.RESULTS.singular) and bool(batch.success[1])
+    # the vmapped program rounds apart from the unbatched one, and the last steps before the bound
+    # are short: the member stops at a neighbouring accepted step, below the same bound
+    assert 0 < float(batch.q_final[0, 3]) <= bound
+    np.testing.assert_allclose(float(batch.t_final[0]), float(across.t_final), rtol=0, atol=1e-5)
+    alone = jb.simulate(roll, q1, x1, 0.1, max_steps=2_000, **kw)
+    np.testing.assert_allclose(np.asarray(batch.q_final[1]), np.asarray(alone.q_final), rtol=0, atol=1e-12)
+    assert "left their chart" in jb.simulation.explain_failure(roll, batch[0], 0.0, 0.1)
     stop = jb.Event(lambda t, q, x: jnp.sin(q[3]) - 1e-3, direction=False)
     landed = jb.simulate(roll, q0, x0, 0.1, max_steps=2_000, event=stop, **kw)
     assert landed.success
@@ -278,6 +408,131 @@ def test_float32_long_chain_and_mass_ratios_within_conditioning(long_chain):
         err = np.max(np.abs(a32 - ref)) / np.max(np.abs(ref))
         assert err <= 10 * cond * eps32, (err, cond)
         print(f"float32: n = {model64.nv}, cond(M) = {cond:.2e}, relative error {err:.2e}")
+
+
+# ------------------------------------------------ float32 on the singular and stiff scenes
+EPS32 = float(np.finfo(np.float32).eps)
+
+
+def to_dtype(tree, dtype):
+    """Every floating array of a model or system in ``dtype`` (integers and static fields kept)."""
+    return jax.tree.map(lambda x: x.astype(dtype) if eqx.is_inexact_array(x) else x, tree)
+
+
+def test_float32_example5_reaction_near_the_horizontal_links():
+    """Float32 keeps Example 5's reaction near φ = π/2 to float32 round-off: F_r cos φ equals the
+    closed form (evaluated at the float32 angle) to a few ulps down to cos φ ≈ 1e-4."""
+    ex5 = to_dtype(jb.examples.vertical_line_double_pendulum(), np.float32)
+    reaction = eqx.filter_jit(ex5.reaction)
+    for delta in (1e-2, 1e-4):
+        for dphi in (0.0, 1.3):
+            phi = float(np.float32(np.pi / 2 - delta))
+            fr = reaction(jnp.array([phi], np.float32), jnp.array([dphi], np.float32))
+            assert fr.dtype == jnp.float32
+            np.testing.assert_allclose(float(fr) * np.cos(phi), example5_reaction_times_cos(phi, dphi), rtol=50 * EPS32)
+
+
+@pytest.mark.slow
+def test_float32_ball_joint_through_quaternion_sign_flip():
+    """The free rotation through the quaternion's sign flip in float32 (``tsit5`` at 1e-5): no NaN,
+    the attitude follows exp(tω̂) and the quaternion stays unit, to the solver's tolerance, and
+    continuous through the flip."""
+    b = jb.ModelBuilder(gravity=(0, 0, 0))
+    # (0.3, 0.2, 0.1), the float64 case's thin plate, is on the triangle inequality's edge, which
+    # float32 rounding crosses (0.1 + 0.2 < 0.3): a body clear of it
+    b.add_body("top", mass=1.0, com=(0, 0, 0), inertia=(0.3, 0.2, 0.12), joints=[jb.Ball()])
+    model = b.build(dtype=np.float32)
+    omega = np.array([0.0, 0.0, 2 * np.pi])
+    sol = jb.simulate(model, jnp.array([1.0, 0, 0, 0], np.float32), jnp.asarray(omega, np.float32),
+                      jnp.asarray(1.0, np.float32), solver="tsit5", rtol=1e-5, atol=1e-5, n_save=21)
+    quat = np.asarray(sol.q, np.float64)
+    assert sol.q.dtype == jnp.float32 and bool(sol.success) and np.isfinite(quat).all()
+    assert quat[0, 0] > 0.99 and quat[-1, 0] < -0.99 and np.max(np.abs(np.diff(quat, axis=0))) < 0.2
+    for t, qt in zip(np.asarray(sol.t, np.float64), quat):
+        ref = Rotation.from_rotvec(omega * t).as_matrix()
+        # to the solver's tolerance (1e-5 per step, accumulated over the turn)
+        np.testing.assert_allclose(Rotation.from_quat(qt[[1, 2, 3, 0]]).as_matrix(), ref, atol=1e-4)
+    # every step ends on the unit sphere; the saved points between steps are interpolated, off it by
+    # the solver's tolerance
+    np.testing.assert_allclose(np.linalg.norm(quat, axis=1), 1.0, atol=1e-4)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1800)
+def test_float32_stiff_chain_kvaerno5():
+    """The stiff chain (springs 1 to 1e6, critically damped) in float32 with ``kvaerno5`` at 1e-5:
+    finite and within 1e-5 of float64, but the Newton iterations cannot meet the tolerance in float32
+    (the 1e6 spring's torque cancels to a small difference): hundreds of times the steps of float64
+    at the same tolerance, most of them rejected. The documented advice: stiff springs in float64."""
+    damping, q0, _, _ = STIFF_CASES["critically_damped"]
+    xml = chain_mjcf(5, stiffness=STIFFNESS, damping=damping(), axes=("0 1 0",))
+    kw = dict(solver="kvaerno5", n_save=21, max_steps=100_000)
+    runs = {}
+    for dtype, tol in ((np.float64, 1e-10), (np.float64, 1e-5), (np.float32, 1e-5)):
+        scene = jb.scene(jb.from_mjcf(xml, dtype=dtype), planar=False)
+        runs[dtype, tol] = jb.simulate(scene, jnp.asarray(q0, dtype), jnp.zeros(5, dtype), jnp.asarray(0.02, dtype),
+                                       rtol=tol, atol=tol, **kw)
+    s32, ref, s64 = runs[np.float32, 1e-5], runs[np.float64, 1e-10], runs[np.float64, 1e-5]
+    assert s32.q.dtype == jnp.float32 and bool(s32.success) and np.isfinite(np.asarray(s32.q)).all()
+    assert np.max(np.abs(np.asarray(s32.q, np.float64) - np.asarray(ref.q))) < 1e-5
+    steps = int(s32.stats["num_steps"]), int(s64.stats["num_steps"])
+    print(f"stiff chain, kvaerno5 at 1e-5 over 0.02 s: float32 {steps[0]} steps ({int(s32.stats['num_rejected_steps'])} "
+          f"rejected), float64 {steps[1]}; max |q32 - q64| = "
+          f"{np.max(np.abs(np.asarray(s32.q, np.float64) - np.asarray(ref.q))):.2g}")
+    assert steps[0] > 20 * steps[1], steps
+
+
+@pytest.mark.slow
+def test_float32_rolling_disk_falling_flat():
+    """The nearly flat rolling disk in float32: it follows float64 to 1e-4 while it falls, and stops
+    at float32's chart bound (|sin θ| ≤ ε₃₂^(1/4) = 1.8e-2), earlier than float64, with the same
+    message naming the chart."""
+    runs = {}
+    for dtype, tol in ((np.float64, 1e-10), (np.float32, 1e-5)):
+        roll = dk.rolling_disk(*(jnp.asarray(x, dtype) for x in (2.0, 0.3, 9.81)))
+        q0 = jnp.array([0.0, 0.0, 0.0, 0.05, 0.0], dtype)
+        x0 = dk.initial_velocities(roll, q0, jnp.array([-0.9 * np.cos(0.05), 0.0, 3.0, 0.0, 0.0], dtype),
+                                   atol=1e-5 if dtype == np.float32 else 1e-9)
+        runs[dtype] = roll, jb.simulate(roll, q0, x0, jnp.asarray(0.1, dtype), rtol=tol, atol=tol, max_steps=4_000,
+                                        saveat=jnp.linspace(0, 0.05, 6).astype(dtype), throw=False)
+    roll, s32 = runs[np.float32]
+    s64 = runs[np.float64][1]
+    assert s32.q.dtype == jnp.float32 and bool(s32.result == jb.RESULTS.singular)
+    assert 0.05 < float(s32.t_final) < float(s64.t_final)
+    assert float(jnp.sin(s32.q_final[3])) <= EPS32**0.25 < 0.02
+    assert "left their chart" in jb.simulation.explain_failure(roll, s32, 0.0, 0.1)
+    print(f"flat disk, float32: stopped at t = {float(s32.t_final):.4g} (float64: {float(s64.t_final):.4g}), "
+          f"max |q32 - q64| up to 0.05 s = {np.max(np.abs(np.asarray(s32.q, np.float64) - np.asarray(s64.q))):.2g}, "
+          f"|v32 - v64| = {np.max(np.abs(np.asarray(s32.v, np.float64) - np.asarray(s64.v))):.2g}")
+    np.testing.assert_allclose(np.asarray(s32.q, np.float64), np.asarray(s64.q), atol=1e-4)
+    np.testing.assert_allclose(np.asarray(s32.v, np.float64), np.asarray(s64.v), atol=1e-4)
+
+
+@pytest.mark.slow
+def test_float32_example5_and_four_bar_through_their_singular_configurations(four_bar_scene):
+    """Example 5 through φ = π/2 and the four-bar through its folded configuration in float32
+    (``tsit5`` at 1e-5): no NaN, energy and constraints within 1e-4, the motion within 1e-3 of
+    float64."""
+    ex64 = jb.examples.vertical_line_double_pendulum()
+    for name, system, q0, v0, t1, checks in (
+        ("Example 5", ex64, np.array([1.2]), np.array([5.0]), 1.0, ()),
+        ("four-bar", four_bar_scene, *four_bar_start(), 1.5, ("position",)),
+    ):
+        sols = {}
+        for dtype, tol in ((np.float64, 1e-10), (np.float32, 1e-5)):
+            sys_d = system if dtype == np.float64 else to_dtype(system, dtype)
+            sols[dtype] = jb.simulate(sys_d, jnp.asarray(q0, dtype), jnp.asarray(v0, dtype), jnp.asarray(t1, dtype),
+                                      solver="tsit5", rtol=tol, atol=tol, n_save=51)
+        s32, s64 = sols[np.float32], sols[np.float64]
+        drift = {k: float(jnp.max(jnp.abs(s32.constraint_drift[k]))) for k in checks}
+        print(f"{name}, float32: energy drift {float(s32.energy_drift):.2g}, constraints {drift}, "
+              f"max |q32 - q64| = {np.max(np.abs(np.asarray(s32.q, np.float64) - np.asarray(s64.q))):.2g}, "
+              f"{int(s32.stats['num_steps'])} steps")
+        assert s32.q.dtype == jnp.float32 and bool(s32.success) and np.isfinite(np.asarray(s32.q)).all()
+        assert float(s32.energy_drift) < 1e-4
+        for kind in checks:
+            assert float(jnp.max(jnp.abs(s32.constraint_drift[kind]))) < 1e-4
+        np.testing.assert_allclose(np.asarray(s32.q, np.float64), np.asarray(s64.q), atol=1e-3)
 
 
 # ------------------------------------------------------------------------------ gradients
@@ -357,11 +612,15 @@ def _batch_inputs(model):
     return q0s, v0s, masses
 
 
-def _check_bad_member(kernel, solver_kw, members):
+def _check_bad_member(kernel, solver_kw):
+    """The batch with its two bad members against every member solved alone: the unbatched
+    solves run as one ``lax.map`` over the members (one compiled program, each member traced
+    without a batch axis), so all 1022 good members are compared, bit for bit up to rounding."""
     model = jb.from_mjcf(BALL_CHAIN)
     scene = jb.scene(model, kernel=kernel)
     q0s, v0s, masses = _batch_inputs(model)
-    scenes = jax.vmap(lambda m: eqx.tree_at(lambda s: s.system.body_mass, scene, m))(jnp.asarray(masses))
+    with_mass = lambda m: eqx.tree_at(lambda s: s.system.body_mass, scene, m)  # noqa: E731
+    scenes = jax.vmap(with_mass)(jnp.asarray(masses))
     sol = jb.simulate_batch(scenes, q0s, v0s, 0.3, batched_system=True, **solver_kw)
     ok = np.ones(N_BATCH, bool)
     ok[[BAD_PARAMETER, BAD_STATE]] = False
@@ -369,13 +628,26 @@ def _check_bad_member(kernel, solver_kw, members):
     assert not success[BAD_PARAMETER] and not success[BAD_STATE]
     assert success[ok].all()
     assert np.isfinite(np.asarray(sol.q_final)[ok]).all()
-    one = jax.jit(lambda s, q0, v0: jb.simulate(s, q0, v0, 0.3, throw=False, **solver_kw))
-    for i in members:
-        alone = one(eqx.tree_at(lambda s: s.system.body_mass, scene, jnp.asarray(masses[i])), q0s[i], v0s[i])
-        assert bool(alone.success) == bool(success[i])
-        if success[i]:
-            np.testing.assert_allclose(np.asarray(sol.q_final[i]), np.asarray(alone.q_final), rtol=0, atol=1e-12)
-            np.testing.assert_allclose(np.asarray(sol.v_final[i]), np.asarray(alone.v_final), rtol=0, atol=1e-11)
+
+    # fixed steps: the end state alone, without the work integrals (the same steps, and the work
+    # does not feed back into the motion) in a program that compiles in half the time; an adaptive
+    # solve keeps its saves, which decide whether it runs as one native call
+    end_only = dict(solver_kw)
+    if "dt0" in solver_kw:
+        end_only.pop("n_save", None)
+        end_only.setdefault("saveat", diffrax.SaveAt(t1=True))
+        end_only["track_work"] = False
+
+    def alone(member):
+        m, q0, v0 = member
+        out = jb.simulate(with_mass(m), q0, v0, 0.3, throw=False, **end_only)
+        return out.success, out.q_final, out.v_final
+
+    each = jax.jit(lambda *members: jax.lax.map(alone, members))
+    alone_success, alone_q, alone_v = (np.asarray(x) for x in each(jnp.asarray(masses), jnp.asarray(q0s), jnp.asarray(v0s)))
+    np.testing.assert_array_equal(alone_success, success)
+    np.testing.assert_allclose(np.asarray(sol.q_final)[ok], alone_q[ok], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(sol.v_final)[ok], alone_v[ok], rtol=0, atol=1e-11)
 
 
 BATCH_CASES = {
@@ -390,14 +662,14 @@ BATCH_CASES = {
 @pytest.mark.parametrize("case", ["vectorised"])
 def test_bad_member_leaves_the_batch_alone(case):
     kernel, kw = BATCH_CASES[case]
-    _check_bad_member(kernel, kw, members=(0, 4, 6, 699, 701, 1023))
+    _check_bad_member(kernel, kw)
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("case", ["unrolled", "native", "native_one_call"])
 def test_bad_member_leaves_the_batch_alone_every_kernel(case):
     kernel, kw = BATCH_CASES[case]
-    _check_bad_member(kernel, kw, members=(0, 4, 6, 699, 701, 1023))
+    _check_bad_member(kernel, kw)
 
 
 # ------------------------------------------------------------------------------ the stiff chain

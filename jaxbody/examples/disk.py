@@ -22,9 +22,11 @@ differentiation. The other regimes **add constraints** to this base system:
 
 The Euler angles are singular where the disk lies flat (``sin θ = 0``): ``ψ̇ = x₂ / sin θ`` in
 :meth:`DiskOnPlane.qdot` grows without bound as a disk with ``x₂ ≠ 0`` falls flat, which is
-also where the model of a disk touching the plane at one rim point ends. An adaptive solve
-never steps across it: its steps shrink until ``max_steps`` stops it just before, with a finite
-state. To stop at a chosen height instead, pass ``event=jb.Event(lambda t, q, x: jnp.sin(q[3]) - h)``.
+also where the model of a disk touching the plane at one rim point ends. The disk declares its
+chart (:meth:`DiskOnPlane.coordinate_chart`: ``|sin θ|`` above a bound), so a solve that falls
+flat stops with the result code ``singular`` and a message naming the chart, ``sin θ`` and the
+time. To stop at a chosen height instead, pass
+``event=jb.Event(lambda t, q, x: jnp.sin(q[3]) - h, direction=False)`` with ``h`` above the bound.
 
 Users give ``(q, q̇)``; :func:`initial_velocities` converts to ``x`` and rejects rates that
 violate the regime. :func:`disk_outputs` gives the centre, contact point, normal force,
@@ -37,6 +39,7 @@ import jax.numpy as jnp
 
 from .. import maggi
 from .._types import Array, ArrayLike, Float, Scalar
+from ..scene import CoordinateChart
 
 __all__ = [
     "DiskOnPlane",
@@ -139,6 +142,17 @@ class DiskOnPlane(maggi.QuasiVelocitySystem):
             ]
         )
 
+    def coordinate_chart(self) -> CoordinateChart:
+        """The z–x–z Euler angles are regular while ``|sin θ|`` stays above the chart's bound
+        (``ε^(1/4)`` of the dtype): the kinematics (D.2) divides by ``sin θ``."""
+        return CoordinateChart(
+            name="z-x-z Euler angles (ψ, θ, φ) of the disk",
+            coordinates=("|sin θ| (θ = q[3], the nutation: the disk lies flat where it is 0)",),
+            margins=_sin_nutation,
+            advice=("To end the solve before the disk lies flat, pass event=jb.Event(lambda t, q, x: "
+                    "jnp.sin(q[3]) - h, direction=False) with h above the bound (the centre's height is ρ sin θ)"),
+        )
+
     # -- contact -------------------------------------------------------------------------
     def contact_velocity(self, q, x) -> Float[Array, " 3"]:
         """Velocity of the disk's material point at ``D`` on the axes ``x₁, y₁, z₁`` (D.3)."""
@@ -153,6 +167,11 @@ class DiskOnPlane(maggi.QuasiVelocitySystem):
         vz = lambda qq, xx: jax.jvp(self.centre, (qq,), (self.qdot(qq, xx),))[1][2]
         zdd = jax.jvp(vz, (q, x), (self.qdot(q, x), xdot))[1]
         return self.mass * (self.gravity + zdd)
+
+
+def _sin_nutation(q):
+    # the chart's margin: ψ̇ = x₂ / sin θ and φ̇ = x₃ − x₂ cos θ / sin θ (D.2)
+    return jnp.abs(jnp.sin(q[3]))
 
 
 def _scalar(v, name):

@@ -112,6 +112,12 @@ class ConstrainedSystem(eqx.Module):
     def total_energy(self, q, v):
         return self.base.total_energy(q, v)
 
+    def coordinate_chart(self):
+        """The base system's chart (:class:`jaxbody.scene.CoordinateChart`), or ``None``: the
+        constraints restrict the motion, not where the coordinates are regular."""
+        declare = getattr(self.base, "coordinate_chart", None)
+        return declare() if callable(declare) else None
+
     # -- constraint functions ------------------------------------------------------------
     @compiled_when_eager
     def constraint_residual(self, t, q, x) -> Array:

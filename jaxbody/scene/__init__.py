@@ -20,14 +20,16 @@ internal change of variables.
 Modules: :mod:`~jaxbody.scene.base` (the protocol), :mod:`~jaxbody.scene.spatial`,
 :mod:`~jaxbody.scene.planar`, :mod:`~jaxbody.scene.system` (one per path),
 :mod:`~jaxbody.scene.builder`
-(:func:`scene`) and :mod:`~jaxbody.scene.events` (:class:`Event`, :class:`Phases`).
+(:func:`scene`), :mod:`~jaxbody.scene.events` (:class:`Event`, :class:`Phases`) and
+:mod:`~jaxbody.scene.chart` (:class:`CoordinateChart`: where a system's coordinates are regular).
 """
 
 from .base import ModelScene as ModelScene, Scene as Scene
 from .builder import scene as scene
+from .chart import CoordinateChart as CoordinateChart
 from .events import Event as Event, Phases as Phases
 from .planar import PlanarScene as PlanarScene
 from .spatial import SpatialScene as SpatialScene
 from .system import SystemScene as SystemScene, own_constraints as own_constraints
 
-__all__ = ["Scene", "scene", "Phases", "Event", "SpatialScene", "PlanarScene", "SystemScene", "own_constraints"]
+__all__ = ["Scene", "scene", "CoordinateChart", "Phases", "Event", "SpatialScene", "PlanarScene", "SystemScene", "own_constraints"]

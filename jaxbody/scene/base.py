@@ -23,6 +23,7 @@ from ..effects import EffectContext, Gravity
 from ..joints import BALL, FREE
 from ..kinematics import qpos_rate
 from ..model import Model
+from .chart import CoordinateChart, chart_of
 
 __all__ = ["Scene", "ModelScene"]
 
@@ -182,6 +183,12 @@ class Scene(eqx.Module):
             return None
         # the constraints see the same context as the vector field (rheonomic rows need t)
         return self.constraints.drift(self.context(jnp.asarray(t, v.dtype), q, v))
+
+    def coordinate_chart(self) -> CoordinateChart | None:
+        """The chart the system declares (``coordinate_chart()``, optional in the protocol):
+        where its coordinates are regular. The step guard of :func:`jaxbody.simulate` stops a
+        solve that leaves it; ``None`` for coordinates that are regular everywhere."""
+        return chart_of(self.system)
 
     @property
     def runs(self) -> str:

@@ -21,12 +21,15 @@ from .._util import is_concrete
 from ..dynamics import mass_matrix
 from ..model import Model
 from ..scene import ModelScene
+from ..scene.chart import chart_of
 from .solution import RESULTS, SimulationError, Solution, result_code, result_from_code
 
 __all__ = ["raise_on_failure", "failure_message", "diagnose", "explain_failure", "mark_invalid"]
 
 # a step this much shorter than the interval is a collapse, not a long motion
 _COLLAPSE = 1e-7
+# the step guard's code for a step that left the scene's coordinate chart
+_SINGULAR = int(np.asarray(result_code(RESULTS.singular)))
 
 
 def mark_invalid(sol: Solution, valid, t0) -> Solution:
@@ -54,6 +57,13 @@ def diagnose(scene, t, q, v, code, num_steps, t0, t1) -> str | None:
     if not (np.all(np.isfinite(np.asarray(q))) and np.all(np.isfinite(np.asarray(v)))):
         return None
     t, q, v = jnp.asarray(t, q.dtype), jnp.asarray(q), jnp.asarray(v)
+    # a step guard that stopped the solve at the edge of the scene's coordinate chart: named first,
+    # the dynamics there are finite and the checks below would find nothing
+    chart = chart_of(scene)
+    if chart is not None:
+        why = chart.explain_at(q, float(t))
+        if why is not None:
+            return why
     # the forces where the solve stopped and just ahead of it, along the motion: an adaptive
     # solver retries ever smaller steps when every trial stage ends in NaN
     try:
@@ -116,6 +126,7 @@ def raise_on_failure(sol: Solution, scene=None, t0=None, t1=None) -> Solution:
     error with the same text). The callback sits in a custom JVP, so derivatives pass through."""
     failed = ~sol.success
     code = result_code(sol.result)
+    chart = chart_of(scene)
     # eager solves raise a plain Python error here, with this call's traceback; only a traced
     # one needs the callback
     if is_concrete(code, sol.t_final, sol.q_final, sol.v_final):
@@ -124,28 +135,39 @@ def raise_on_failure(sol: Solution, scene=None, t0=None, t1=None) -> Solution:
             if scene is not None and np.ndim(code) == 0 and is_concrete(scene, t0, t1):
                 why = diagnose(scene, sol.t_final, sol.q_final, sol.v_final, int(np.asarray(code)),
                                np.asarray(sol.stats["num_steps"]), t0, t1)
+            margins = None if chart is None else _chart_margins(chart, sol.q_final)
             raise SimulationError(
                 failure_message(np.asarray(failed), np.asarray(code), np.asarray(sol.t_final),
-                                np.asarray(sol.q_final), np.asarray(sol.v_final), why)
+                                np.asarray(sol.q_final), np.asarray(sol.v_final), why, chart, margins)
             )
         return sol
     # the check is threaded through every array of the solution, so JAX cannot drop it as dead
     # code and no result is used before it has run
     dynamic, static = eqx.partition(sol, eqx.is_array)
-    dynamic = _fail_with_state(dynamic, failed, code, sol.t_final, sol.q_final, sol.v_final)
+    # the chart's margins at the final state travel to the host beside it: the message of a
+    # member that left its chart names the coordinate (the chart itself is static)
+    margins = jnp.zeros((0,), sol.q_final.dtype) if chart is None else _chart_margins(chart, sol.q_final)
+    dynamic = _fail_with_state(dynamic, failed, code, sol.t_final, sol.q_final, sol.v_final, margins, chart)
     return eqx.combine(dynamic, static)
 
 
+def _chart_margins(chart, q):
+    """The chart's margins at ``q`` (a batch of states: one row each)."""
+    q = jnp.asarray(q)
+    flat = q.reshape((-1, q.shape[-1]))
+    return jax.vmap(chart.margin_values)(flat).reshape(q.shape[:-1] + (len(chart.coordinates),))
+
+
 @eqx.filter_custom_jvp
-def _fail_with_state(dynamic, failed, code, t, q, v):
+def _fail_with_state(dynamic, failed, code, t, q, v, margins, chart):
     leaves, treedef = jax.tree.flatten(dynamic)
     shapes = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves]
 
-    def report(failed, code, t, q, v, *rest):
-        raise SimulationError(failure_message(failed, code, t, q, v))
+    def report(failed, code, t, q, v, margins, *rest):
+        raise SimulationError(failure_message(failed, code, t, q, v, None, chart, margins if chart is not None else None))
 
     def fail():
-        return jax.pure_callback(report, shapes, failed, code, t, q, v, *leaves, vmap_method="broadcast_all")
+        return jax.pure_callback(report, shapes, failed, code, t, q, v, margins, *leaves, vmap_method="broadcast_all")
 
     # one predicate for a whole vmapped batch: the failing branch runs (and raises) only when
     # some member failed, and reports the first one that did
@@ -159,10 +181,11 @@ def _fail_with_state_jvp(primals, tangents):
     return _fail_with_state(*primals), tangents[0]
 
 
-def failure_message(failed, code, t, q, v, why: str | None = None) -> str:
+def failure_message(failed, code, t, q, v, why: str | None = None, chart=None, margins=None) -> str:
     """The text of a :class:`SimulationError`: the first failed member's time, reason (from its
     result ``code``, or ``why`` from :func:`diagnose`) and state (``failed`` marks the failed
-    members of a batch)."""
+    members of a batch). With the scene's coordinate ``chart`` and its ``margins`` at the final
+    states, a member stopped with ``singular`` outside the chart is told so, naming the coordinate."""
     failed = np.asarray(failed)
     batch = failed.shape
     flat = failed.reshape(-1)
@@ -172,6 +195,11 @@ def failure_message(failed, code, t, q, v, why: str | None = None) -> str:
     t = float(np.broadcast_to(np.asarray(t), batch).reshape(-1)[i])
     q = np.asarray(q).reshape((-1,) + np.shape(q)[len(batch):])[i]
     v = np.asarray(v).reshape((-1,) + np.shape(v)[len(batch):])[i]
+    if why is None and chart is not None and margins is not None and code == _SINGULAR:
+        m = np.asarray(margins)
+        m = m.reshape((-1,) + m.shape[len(batch):])[i] if batch and m.ndim > 1 else m.reshape(-1)
+        if not np.all(m > chart.limit(q.dtype)):
+            why = chart.explain(m, t, q.dtype)
     where = f" (batch member {np.unravel_index(i, batch) if len(batch) > 1 else i} of {flat.size})" if batch else ""
     return (
         f"simulate: the solve failed at t = {t:.6g}{where}: {why or _reason(code)}\n"
@@ -187,6 +215,10 @@ def _reason(code: int) -> str:
         return ("the state became NaN or inf (the motion blew up, e.g. a fixed step too large for stiff "
                 "dynamics, or a force returned NaN); the state shown is the first non-finite one, the "
                 "trajectory saved before it is finite")
+    if code == _SINGULAR:
+        return ("the coordinates or the equations of motion became singular at this state: a step ended outside "
+                "the scene's coordinate chart (jaxbody.scene.CoordinateChart), or a linear solve of the dynamics "
+                "failed")
     # "successful" with a failed solve: diffrax stopped without a code of its own
     if code == int(np.asarray(result_code(RESULTS.successful))):
         return "the step-size controller or the solver's root finder failed"

@@ -230,15 +230,19 @@ class SemiImplicitEuler(diffrax.AbstractSolver):
 
 class Guarded(DelegatingSolver):
     """Wraps a solver: projects every step's end state (unit quaternions) and flags a
-    non-finite one.
+    non-finite one, or one outside the scene's coordinate chart.
 
     Projection after each step keeps ball/free quaternions on the unit sphere to rounding,
     while the error estimate (and so the step control) is the wrapped solver's. A step whose
     end state is NaN or inf returns diffrax's ``nonfinite`` code: an adaptive controller
     rejects that step anyway (its error estimate is not finite) and tries a smaller one, but a
     fixed step is accepted, so the solve stops there (``t_final``, ``q_final``, ``v_final`` show
-    the first non-finite state) instead of carrying NaN to ``t1`` and calling that a success. ``isinstance`` checks (adaptive,
-    implicit) are forwarded to the wrapped solver by diffrax.
+    the first non-finite state) instead of carrying NaN to ``t1`` and calling that a success.
+    A step that ends outside the coordinate chart the scene declares
+    (:meth:`jaxbody.scene.Scene.coordinate_chart`, e.g. Euler angles near their singular set)
+    returns ``singular``: finite, so the error estimate accepts it, but the coordinates no longer
+    describe the motion. ``isinstance`` checks (adaptive, implicit) are forwarded to the wrapped
+    solver by diffrax.
 
     ``record=True`` (fixed steps): the first non-finite step of each trajectory is recorded in
     the solver state (:class:`Failure`), the trajectory stays in the state that step ended in,
@@ -266,7 +270,8 @@ class Guarded(DelegatingSolver):
             return state
         t0 = jnp.asarray(t0)
         failure = Failure(failed=jnp.asarray(False), t=jnp.full_like(t0, jnp.inf),
-                           steps=jnp.zeros((), jnp.int32), count=jnp.zeros((), jnp.int32))
+                           steps=jnp.zeros((), jnp.int32), count=jnp.zeros((), jnp.int32),
+                           chart=jnp.asarray(False))
         return state, failure
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
@@ -275,17 +280,26 @@ class Guarded(DelegatingSolver):
         if self.project is not None:
             y1 = self.project(y1)
         finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves(y1)]))
+        inside = _inside_chart(args, y1)
         if not self.record:
             result = diffrax.RESULTS.where(finite, result, diffrax.RESULTS.nonfinite)
+            # a step that ends outside the scene's coordinate chart is accepted by the error
+            # estimate (it is finite) but its coordinates no longer describe the motion: diffrax's
+            # ``singular`` code stops this trajectory alone (a batch's other members go on)
+            result = diffrax.RESULTS.where(~finite | inside, result, diffrax.RESULTS.singular)
             return y1, err, dense, state, result
         count = failure.count + 1
+        # a step outside the chart fails the trajectory as a non-finite one does
+        chart_left = finite & ~inside
+        finite = finite & inside
         # a trajectory that failed stays in its first non-finite state (its final state)
         y1 = jax.tree.map(lambda a, b: jnp.where(failure.failed, a, b), y0, y1)
 
         def record(failure, t1):
             first = ~finite & ~failure.failed
             return Failure(failed=failure.failed | first, t=jnp.where(first, t1, failure.t),
-                            steps=jnp.where(first, count, failure.steps), count=count)
+                            steps=jnp.where(first, count, failure.steps), count=count,
+                            chart=failure.chart | (first & chart_left))
 
         # while every trajectory is finite (the usual case) a batch skips the record's selects
         failure = lax.cond(
@@ -301,14 +315,33 @@ class Guarded(DelegatingSolver):
 
 
 class Failure(eqx.Module):
-    """The first non-finite step of a trajectory (:class:`Guarded` with ``record=True``):
-    whether there was one, its end time, and how many steps it was; ``count``: the steps taken
-    so far. (The state stays where that step ended.)"""
+    """The first failed step of a trajectory (:class:`Guarded` with ``record=True``): whether
+    there was one, its end time, and how many steps it was; ``count``: the steps taken so far;
+    ``chart``: the step ended outside the scene's coordinate chart (finite, but singular
+    coordinates) rather than non-finite. (The state stays where that step ended.)"""
 
     failed: Array
     t: Array
     steps: Array
     count: Array
+    chart: Array
+
+
+def _inside_chart(args, y1):
+    """Whether the step's end state lies inside the coordinate chart its scene declares
+    (:meth:`jaxbody.scene.Scene.coordinate_chart`); true without a chart, and for solves whose
+    arguments are not :func:`simulate`'s ``(scene, valid)`` (a backsolve adjoint's reverse solve)."""
+    if not (isinstance(args, tuple) and len(args) == 2 and isinstance(args[0], Scene)):
+        return jnp.asarray(True)
+    chart = args[0].coordinate_chart()
+    q = y1[0]
+    if chart is None or not isinstance(q, jax.Array) or q.shape != (args[0].nq,):
+        return jnp.asarray(True)
+    # a member that failed the boundary check integrates a frozen placeholder state, whatever
+    # chart it lies in: it is reported as invalid input, not as a chart it left
+    valid = args[1]
+    inside = chart.inside(lax.stop_gradient(q))
+    return inside if valid is None else inside | ~valid
 
 
 def recording_depth(solver) -> int | None:
@@ -330,7 +363,8 @@ def failure_record(solver_state, depth: int):
 
 
 def apply_failure(failure, ts, ys, tf, stats, result, final_is_last):
-    """Each trajectory's own outcome from the recorded first failure: the result ``nonfinite``,
+    """Each trajectory's own outcome from the recorded first failure: the result ``nonfinite``
+    (``singular`` for a step that left the scene's coordinate chart),
     the end time of the failing step as the final time (the state stayed there), the step counts
     up to it, and the saved times after it padded with ``inf`` as diffrax pads times a solve
     never reached (``final_is_last``: the last saved point is the final state, diffrax's
@@ -347,7 +381,7 @@ def apply_failure(failure, ts, ys, tf, stats, result, final_is_last):
     tf = tf.at[-1].set(jnp.where(failed, failure.t, tf[-1]))
     steps = jnp.where(failed, failure.steps, stats["num_steps"])
     stats = {**stats, "num_steps": steps, "num_accepted_steps": jnp.where(failed, steps, stats["num_accepted_steps"])}
-    result = RESULTS.where(failed, RESULTS.nonfinite, result)
+    result = RESULTS.where(failed, RESULTS.where(failure.chart, RESULTS.singular, RESULTS.nonfinite), result)
     return ts, ys, tf, stats, result
 
 
