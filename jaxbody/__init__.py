@@ -67,7 +67,9 @@ from . import planar as planar
 from . import examples as examples
 # --- scenes and simulation (scene/, effects/, simulation/) ---
 from . import effects as effects
+from .effects import FourierTorque as FourierTorque  # a joint torque the one-call native solves evaluate
 from .scene import Scene as Scene, scene as scene, Phases as Phases, Event as Event
+from .scene import CoordinateChart as CoordinateChart
 from .simulation import (
     DynamicalSystem as DynamicalSystem,
     RESULTS as RESULTS,
@@ -134,6 +136,3 @@ def __getattr__(name):
         return _moved(f"jaxbody.{name}", _MOVED_MODULES[name].__name__, _MOVED_MODULES[name])
     raise AttributeError(f"module 'jaxbody' has no attribute {name!r}")
 
-
-# a joint torque as a finite Fourier series of time (the one-call native solves evaluate it)
-from .effects import FourierTorque as FourierTorque  # noqa: E402

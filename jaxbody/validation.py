@@ -132,11 +132,18 @@ def validate_parameters(model, rtol: float = 1e-9) -> None:
     positive mass and principal moments for a moving body with nothing welded to it (MuJoCo's
     compiler rejects the same models); non-zero hinge and slide axes; non-zero quaternions.
 
+    The inertia checks allow a relative ``rtol``, at least a few roundings of the model's dtype:
+    a float32 thin plate (principal moments 0.1, 0.2, 0.3) sits on the triangle inequality,
+    which rounding to float32 crosses (0.1 + 0.2 < 0.3 there).
+
     Raises:
         ValueError: naming the field and its body or joint.
     """
     tree, joints = model.tree, model.joints
     bn = tree.names
+    dtype = np.asarray(model.body_inertia).dtype
+    if np.issubdtype(dtype, np.floating):
+        rtol = max(rtol, 8 * float(np.finfo(dtype).eps))
     expected = {
         "body_pos": (tree.n_body, 3), "body_quat": (tree.n_body, 4), "body_mass": (tree.n_body,),
         "body_com": (tree.n_body, 3), "body_inertia": (tree.n_body, 3, 3),

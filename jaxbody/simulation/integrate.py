@@ -30,8 +30,11 @@ class DynamicalSystem(Protocol):
     """What :func:`simulate` needs from a system that is not a :class:`jaxbody.Model`.
 
     ``nq``, ``nv`` (Python ints), ``qdot(q, v)``, ``acceleration(t, q, v, tau)`` (``tau`` may be
-    ``None``) and optionally ``total_energy(q, v)`` and ``power(t, q, v, tau)`` (the power of the
-    non-conservative forces, so the energy balance closes).
+    ``None``) and optionally ``total_energy(q, v)``, ``power(t, q, v, tau)`` (the power of the
+    non-conservative forces, so the energy balance closes) and ``coordinate_chart()`` (a
+    :class:`jaxbody.scene.CoordinateChart`: where the coordinates are regular; a step that leaves
+    it stops its trajectory with a message naming the chart, see the user guide's "Singular
+    coordinates: charts").
     """
 
     nq: int
