@@ -31,7 +31,7 @@ REPO = pathlib.Path(__file__).resolve().parents[1]
 
 def _states(model, rng, batch):
     q = np.asarray(model.qpos0) + 0.5 * rng.standard_normal((batch, model.nq))
-    q = jax.vmap(lambda x: jb.normalize_qpos(model, x))(jnp.asarray(q))
+    q = jax.jit(jax.vmap(lambda x: jb.normalize_qpos(model, x)))(jnp.asarray(q))
     return q, jnp.asarray(rng.standard_normal((batch, model.nv)))
 
 
@@ -482,16 +482,24 @@ def test_sines_of_large_joint_angles():
         assert float(jnp.max(jnp.abs(a - b))) <= 1e-10 * float(jnp.max(jnp.abs(b))), offset
 
 
-@pytest.mark.default_optimisation  # the range reduction's accuracy needs the fused multiply-adds -O2 makes
-def test_float32_sines_over_many_turns():
+def test_float32_sines_over_many_turns(monkeypatch):
     """Single precision has its own (shorter) sine/cosine polynomials: accelerations of a hinge
     chain in float32 stay within float32 rounding of float64 at the same angles, over 4096
-    angles spread across ±200 rad (full SIMD blocks and a partial one)."""
-    from _support.random_models import hinge_chain
-
+    angles spread across ±200 rad (full SIMD blocks and a partial one). Built at -O2: the range
+    reduction's accuracy needs the fused multiply-adds the optimiser makes (the suite builds at
+    -O0); the chain's own body names give it kernels of its own, built here."""
+    monkeypatch.setenv("JAXBODY_NATIVE_OPTIMISATION", "-O2")
     rng = np.random.default_rng(12)
     q32 = jnp.asarray(rng.uniform(-200.0, 200.0, (4093, 3)), jnp.float32)
     v32 = jnp.asarray(rng.standard_normal((4093, 3)), jnp.float32)
+
+    def hinge_chain(n, dtype):
+        b = jb.ModelBuilder()
+        for k in range(n):
+            b.add_body(f"sines{k}", None if k == 0 else f"sines{k - 1}", pos=(0.0, 0.0, 0.0 if k == 0 else -0.3),
+                       mass=1.0 + 0.1 * k, com=(0.01, 0.0, -0.15), inertia=(0.01, 0.01, 0.002),
+                       joints=[jb.Hinge(axis=(0, 1, 0))])
+        return b.build(dtype=dtype)
 
     def run(dtype):
         model = hinge_chain(3, dtype=dtype)
@@ -561,7 +569,8 @@ def test_native_energies_derivatives_and_float32(models_dir):
     # float32: a batch of 40 states (two blocks of 16 lanes and a partial one) within 1e-5
     m32 = jb.from_mjcf(str(models_dir / "panda.xml"), dtype=jnp.float32)
     qs, vs = _states(model, rng, 40)
-    e64 = jax.vmap(lambda q, v: jnp.stack(native.energies(model, q, v, gravity=model.gravity)))(qs, vs)
-    e32 = jax.vmap(lambda q, v: jnp.stack(native.energies(m32, q, v, gravity=m32.gravity)))(qs.astype(jnp.float32), vs.astype(jnp.float32))
+    e64 = jax.jit(jax.vmap(lambda q, v: jnp.stack(native.energies(model, q, v, gravity=model.gravity))))(qs, vs)
+    e32 = jax.jit(jax.vmap(lambda q, v: jnp.stack(native.energies(m32, q, v, gravity=m32.gravity))))(
+        qs.astype(jnp.float32), vs.astype(jnp.float32))
     assert e32.dtype == jnp.float32
     assert float(jnp.max(jnp.abs(e32.astype(jnp.float64) - e64))) <= 1e-5 * float(jnp.max(jnp.abs(e64)))

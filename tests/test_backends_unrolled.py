@@ -24,7 +24,7 @@ def _state(model, rng, batch=None):
     shape = () if batch is None else (batch,)
     q = np.asarray(model.qpos0) + 0.4 * rng.standard_normal(shape + (model.nq,))
     q = jnp.asarray(q)
-    q = jax.vmap(lambda x: jb.kinematics.normalize_qpos(model, x))(q.reshape(-1, model.nq)).reshape(q.shape)
+    q = jax.jit(jax.vmap(lambda x: jb.kinematics.normalize_qpos(model, x)))(q.reshape(-1, model.nq)).reshape(q.shape)
     v = jnp.asarray(rng.standard_normal(shape + (model.nv,)))
     return q, v
 
@@ -91,8 +91,8 @@ def test_unrolled_batches_and_derivatives_agree_with_the_vectorised_kernel(model
     assert size(jax.vmap(f("unrolled")), q, v) > 2 * size(jax.vmap(f("vectorised")), q, v)
     assert size(f("unrolled"), q[0], v[0]) > 2 * size(f("vectorised"), q[0], v[0])
     loss = lambda k: lambda q, v: jnp.sum(jnp.sin(f(k)(q, v)))
-    g_auto = jax.vmap(jax.grad(loss("unrolled"), argnums=(0, 1)))(q[:8], v[:8])
-    g_vec = jax.vmap(jax.grad(loss("vectorised"), argnums=(0, 1)))(q[:8], v[:8])
+    g_auto = jax.jit(jax.vmap(jax.grad(loss("unrolled"), argnums=(0, 1))))(q[:8], v[:8])
+    g_vec = jax.jit(jax.vmap(jax.grad(loss("vectorised"), argnums=(0, 1))))(q[:8], v[:8])
     for x, y in zip(g_auto, g_vec):
         assert float(jnp.max(jnp.abs(x - y))) <= 1e-9 * float(jnp.max(jnp.abs(y)))
 

@@ -1,5 +1,6 @@
 """Balancing synthesis: static moments to zero, decoupling verified on the engine."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -45,7 +46,7 @@ def balanced_arm():
 def test_balance_decouples_the_three_link_arm(balanced_arm):
     s, rep = balanced_arm
     assert rep.bodies == (1, 2)
-    Ms = np.asarray(jax.vmap(jb.planar.mass_matrix, in_axes=(None, 0))(s, jnp.asarray(_configs(64, 3))))
+    Ms = np.asarray(eqx.filter_jit(jax.vmap(jb.planar.mass_matrix, in_axes=(None, 0)))(s, jnp.asarray(_configs(64, 3))))
     assert _offdiag_ratio(Ms) <= 1e-10
     assert rep.residual_coupling <= 1e-10 and rep.coupling_before > 0.1
     r = design.decoupling_report(s)
@@ -77,7 +78,7 @@ def test_balanced_arm_torque_on_root_leaves_other_bodies_at_rest(balanced_arm):
 def test_partial_decoupling_of_one_body():
     s, rep = design.balance(_arm(), bodies=["hand"])
     assert rep.bodies == (2,)
-    Ms = np.asarray(jax.vmap(jb.planar.mass_matrix, in_axes=(None, 0))(s, jnp.asarray(_configs(16, 3))))
+    Ms = np.asarray(eqx.filter_jit(jax.vmap(jb.planar.mass_matrix, in_axes=(None, 0)))(s, jnp.asarray(_configs(16, 3))))
     scale = np.abs(Ms).max()
     assert np.abs(Ms[:, 2, :2]).max() <= 1e-10 * scale
     assert np.abs(Ms[:, 1, 0]).max() > 1e-2 * scale
@@ -95,7 +96,7 @@ def test_translating_base_needs_every_static_moment_zero():
     cart = jb.examples.cart_pendulum().system
     s, rep = design.balance(cart)
     assert rep.bodies == (0,)
-    Ms = np.asarray(jax.vmap(jb.planar.mass_matrix, in_axes=(None, 0))(
+    Ms = np.asarray(eqx.filter_jit(jax.vmap(jb.planar.mass_matrix, in_axes=(None, 0)))(
         s, jnp.asarray(np.concatenate([np.zeros((16, 2)), _configs(16, 1)], axis=1))))
     assert _offdiag_ratio(Ms) <= 1e-10
 
@@ -221,7 +222,7 @@ def test_extensions_put_counterweights_beyond_the_links_reach():
     np.testing.assert_allclose(rep.added_mass, 1.375, rtol=1e-9)
     # the same decoupling as without extensions, for less than half the added mass
     assert rep.added_mass < 0.5 * rep.closed_form_added_mass  # 3.15: counterweights mirroring the links
-    Ms = np.asarray(jax.vmap(jb.planar.mass_matrix, in_axes=(None, 0))(out, jnp.asarray(_configs(64, 3))))
+    Ms = np.asarray(eqx.filter_jit(jax.vmap(jb.planar.mass_matrix, in_axes=(None, 0)))(out, jnp.asarray(_configs(64, 3))))
     assert _offdiag_ratio(Ms) <= 1e-10
     # the mechanism's joints are untouched
     np.testing.assert_array_equal(np.asarray(out.hinge_pos), np.asarray(s.hinge_pos))
@@ -250,7 +251,7 @@ def test_extension_rod_mass_gives_an_interior_optimum_and_bounds_hold():
     # the rod's inertia λe³/3 and the counterweight's μe² about the hand's joint
     J = lambda x: float(x.body_inertia[2] + x.body_mass[2] * np.sum(np.asarray(x.body_com[2]) ** 2))
     np.testing.assert_allclose(J(out) - J(s), lam * 0.4**3 / 3 + 0.2 * 0.4**2, rtol=1e-9)
-    Ms = np.asarray(jax.vmap(jb.planar.mass_matrix, in_axes=(None, 0))(out, jnp.asarray(_configs(16, 3))))
+    Ms = np.asarray(eqx.filter_jit(jax.vmap(jb.planar.mass_matrix, in_axes=(None, 0)))(out, jnp.asarray(_configs(16, 3))))
     assert np.abs(Ms[:, 2, :2]).max() <= 1e-10 * np.abs(Ms).max()
     with pytest.raises(ValueError, match="'position' cannot be combined with extensions"):
         design.balance(s, bounds={"position": (-1.0, 1.0)}, extensions=True)
@@ -294,7 +295,7 @@ def test_balance_with_adam():
     assert 0.8 - 1e-9 <= rep.added_mass < 2.0
     out, rep = design.balance(s, bodies=["hand"], optimizer="adam", learning_rate=0.05)
     assert rep.polished
-    Ms = np.asarray(jax.vmap(jb.planar.mass_matrix, in_axes=(None, 0))(out, jnp.asarray(_configs(16, 3))))
+    Ms = np.asarray(eqx.filter_jit(jax.vmap(jb.planar.mass_matrix, in_axes=(None, 0)))(out, jnp.asarray(_configs(16, 3))))
     assert np.abs(Ms[:, 2, :2]).max() <= 1e-10 * np.abs(Ms).max()
     with pytest.raises(ValueError, match="optimizer"):
         design.balance(s, optimizer="sgd")
@@ -334,8 +335,6 @@ def test_extension_along_the_link_cannot_cancel_an_off_axis_static_moment():
     # forearm CM 0.1 off the link's line: the extension (backwards along the line to the
     # hand's joint) cancels only m̄'s component along it; balance says so instead of
     # returning a silently coupled design
-    import equinox as eqx
-
     s = _arm()
     s = eqx.tree_at(lambda x: x.body_com, s, s.body_com.at[1, 1].set(0.1))
     with pytest.warns(RuntimeWarning, match="cancels only the static moment along its direction"):
