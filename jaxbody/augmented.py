@@ -1,4 +1,4 @@
-"""Augmented bodies: subtree masses, augmented static moments and inertia tensors (spec §3).
+"""Augmented bodies: subtree masses, augmented static moments and inertia tensors (docs/mathematics.md, "The augmented body").
 
 Augmented body ``k`` is body ``k`` plus, for every adjacent (child) body ``j``, a point mass
 ``m_j`` — the whole mass of subsystem ``j`` — placed at the child's base point ``O_0j``.
@@ -29,7 +29,7 @@ class AugmentedBodies(eqx.Module):
     """Augmented quantities of every body, in one frame (world for spatial trees).
 
     Attributes:
-        subtree_mass: ``m_k``, mass of subsystem ``k`` (spec §3).
+        subtree_mass: ``m_k``, mass of subsystem ``k`` (docs/mathematics.md, "The augmented body").
         static_moment: ``m̄_k`` about the base point ``O_0k`` (eq. 5).
         augmented_inertia: ``I_k`` about ``O_0k`` (eq. 6); ``(n_body, 3, 3)`` for spatial
             trees, ``(n_body,)`` (the planar ``J_k``) for planar ones.
@@ -41,7 +41,7 @@ class AugmentedBodies(eqx.Module):
 
 
 def subtree_mass(tree: BodyTree, body_mass: Float[ArrayLike, " n_body"]) -> Float[Array, " n_body"]:
-    """Mass of subsystem ``k``: ``m_k = sum_{i in S(k)} m_0i`` (spec §3)."""
+    """Mass of subsystem ``k``: ``m_k = sum_{i in S(k)} m_0i`` (docs/mathematics.md, "The augmented body")."""
     return tree.subtree_sum(jnp.asarray(body_mass))
 
 
@@ -109,7 +109,7 @@ def augmented_moment_of_inertia(
 ) -> Float[Array, " n_body"]:
     """Planar reduction of eq. (6): ``J_k = k·I_k k`` about the hinge axis of body ``k``.
 
-    ``J_k = I_Ck + m_0k |r_k|² + sum_{j in A(k)} m_j |R_j|²`` (spec §9.1), with
+    ``J_k = I_Ck + m_0k |r_k|² + sum_{j in A(k)} m_j |R_j|²`` (docs/mathematics.md, "Planar systems in absolute angles"), with
     ``central_inertia`` the moment of inertia about the axis through the CM normal to the plane.
     """
     body_mass = jnp.asarray(body_mass)
@@ -124,5 +124,5 @@ def augmented_moment_of_inertia(
 def subtree_static_moment(
     tree: BodyTree, static_moment: Float[ArrayLike, "n_body dim"]
 ) -> Float[Array, "n_body dim"]:
-    """Static moment of the whole subsystem ``k`` about ``O_0k``: ``sum_{i in S(k)} m̄_i`` (spec §3)."""
+    """Static moment of the whole subsystem ``k`` about ``O_0k``: ``sum_{i in S(k)} m̄_i`` (docs/mathematics.md, "The augmented body")."""
     return tree.subtree_sum(static_moment)

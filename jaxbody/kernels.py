@@ -6,7 +6,7 @@ for vector fields, solver loops and ``vmap`` batches; validate once with
 :func:`jaxbody.check_inputs`). The convenience functions ``jb.mass_matrix(model, q)`` ...
 of :mod:`jaxbody.dynamics` are these kernels behind that check.
 
-Joints are the first Maggi layer (spec §15): the joint rates ``v`` map linearly to the
+Joints are the first Maggi layer (docs/maggi.md, "Maggi's equations and the reactions"): the joint rates ``v`` map linearly to the
 quasi-velocities of the absolute equations (absolute angular velocities ``ω_k``, relative
 pole velocities ``V_rk`` and the free-base velocity), and every joint-space equation is the
 projection of the absolute equations on a DoF's motion:
@@ -77,7 +77,7 @@ __all__ = [
 def _composite_about(model: Model, data: Data, point):
     """Mass, static moment and inertia of every subsystem about one ``point``.
 
-    From the augmented bodies (spec §3): the subsystem static moment about ``O_0k`` is
+    From the augmented bodies (docs/mathematics.md, "The augmented body"): the subsystem static moment about ``O_0k`` is
     ``h_k = sum_{i in S(k)} m̄_i`` and its inertia ``K_k = sum_{l in S(k)} (I_l - [d_kl]×[m̄_l]×
     - [m̄_l]×[d_kl]×)`` with ``d_kl = O_0l - O_0k``; moved to ``point`` (``x_l = O_0l - point``)
     this is ``sum_{l in S(k)} (I_l - sym(x_l, m̄_l)) - m_k [x_k]×²`` and ``h_k + m_k x_k``.
@@ -135,7 +135,7 @@ def uniform_field_force(
     (``a_d`` its anchor), receives the power of the forces on the subtree ``S(k)`` it moves:
     ``Q_d = m_k (s_d · g) + ω_d · ((h_k − m_k a_d) × g)`` with the subtree mass
     ``m_k = Σ_{S(k)} m_l`` and static moment ``h_k = Σ_{S(k)} m_l C_l`` about the origin (the
-    augmented bodies' subsystem mass and static moment, spec §3, eq. 5, moved to the origin).
+    augmented bodies' subsystem mass and static moment, docs/mathematics.md, "The augmented body", eq. 5, moved to the origin).
     """
     field = jnp.asarray(field, data.com.dtype)
     m = model.body_mass
@@ -203,7 +203,7 @@ def force_factors(
         vp = jnp.where(has_parent, point_velocity(parent_motion, data.base_point), 0.0)
         ap = jnp.where(has_parent, point_acceleration(parent_motion, data.base_point), 0.0)
         # Relative motion of the pole O_k with respect to O_0k, derivatives taken in body-k
-        # axes (spec §2 remark): remove the rigid-body part ω×ρ from the world-frame
+        # axes (docs/mathematics.md, "Points and kinematic quantities" remark): remove the rigid-body part ω×ρ from the world-frame
         # derivatives.
         rho = data.pole - data.base_point
         rho_dot = point_velocity(motion, data.pole) - vp

@@ -7,7 +7,7 @@ exactly (``mj_kinematics``): hinge and slide joints act relative to ``qpos0``, t
 anchor is fixed in the frame that precedes the joint, a ball or free joint's angular
 velocity is expressed in the body frame.
 
-Points attached to each body ``k`` (spec §2):
+Points attached to each body ``k`` (docs/mathematics.md, "Points and kinematic quantities"):
 
 * base point ``O_0k`` — fixed in the parent: the anchor of the body's first joint (MuJoCo
   ``xanchor``); for a body without joints its origin; for a free body its origin, treated as
@@ -201,7 +201,7 @@ def _forward_kinematics(model: Model, q: Float[Array, " nq"]) -> Kinematics:
         base = body_x
         sigma = jnp.zeros_like(body_x)
     # The pole O_k is fixed in body k where O_0k is at the joint reference; the two differ only
-    # when a slide or an off-anchor joint of the same body has moved (spec §2).
+    # when a slide or an off-anchor joint of the same body has moved (docs/mathematics.md, "Points and kinematic quantities").
     pole = body_x + jnp.einsum("nij,nj->ni", body_R, sigma)
     return Kinematics(
         body_rotation=body_R,

@@ -1,4 +1,4 @@
-"""Absolute-form equations of spatial body trees (spec §5–§8: Statement 1, Cor. 1 and 4).
+"""Absolute-form equations of spatial body trees (docs/mathematics.md, "Statement 1" to "Corollary 4").
 
 Quantities are world-frame vectors per body ``k`` (leading axis = body):
 
@@ -7,7 +7,7 @@ Quantities are world-frame vectors per body ``k`` (leading axis = body):
 * ``R_k`` the link ``O_0,p(k) -> O_0k`` (unused for roots);
 * ``ω_k``, ``ε_k`` absolute angular velocity/acceleration;
 * ``V_rk``, ``W_rk`` relative velocity/acceleration of the pole ``O_k`` with respect to
-  ``O_0k``, derivatives taken in body-``k`` axes (spec §2 remark);
+  ``O_0k``, derivatives taken in body-``k`` axes (docs/mathematics.md, "Points and kinematic quantities" remark);
 * ``W_0`` the acceleration of the frame carrying a root's base point (zero for the fixed
   ground, the carrier acceleration for a free base, spec Cor. 1).
 
@@ -39,7 +39,7 @@ def _cross(a, b):
 
 
 class ForceFactors(eqx.Module):
-    """Output of Statement 1 (spec §5).
+    """Output of Statement 1 (docs/mathematics.md, "Statement 1").
 
     Attributes:
         force: ``F_k``, force the base exerts on body ``k`` (constraint reaction + drive).
@@ -168,7 +168,7 @@ def absolute_mass_matrix(
     link: Float[ArrayLike, "n_body 3"],
     total_mass: Float[ArrayLike, ""] | None = None,
 ) -> Float[Array, "n n"]:
-    """Block matrix ``D`` of the absolute equations (spec §8, Cor. 4; with Cor. 1 rows).
+    """Block matrix ``D`` of the absolute equations (docs/mathematics.md, "Corollary 4", Cor. 4; with Cor. 1 rows).
 
     Unknowns ``(ε_1, …, ε_n)`` (3 each) for a tree of ball-type joints whose poles are the
     base points; ``D_kk = I_k``, ``D_ki = -[m̄_k]×[R_c(i,k)]×`` for ``i in C(k)`` and its
@@ -207,7 +207,7 @@ def absolute_bias(
     angular_velocity: Float[ArrayLike, "n_body 3"],
     gravity: Float[ArrayLike, "3"],
 ) -> Float[Array, "n_body 3"]:
-    """Velocity-product and gravity vector ``b`` of the absolute equations (spec §8, Cor. 4).
+    """Velocity-product and gravity vector ``b`` of the absolute equations (docs/mathematics.md, "Corollary 4", Cor. 4).
 
     ``b_k = m̄_k × sum_{i in C(k)} ω_i×(ω_i×R_c(i,k)) + ω_k×I_k ω_k
     + sum_{j in A(k)} R_j × sum_{i in S(j)} ω_i×(ω_i×m̄_i) - m̄_k×g``.

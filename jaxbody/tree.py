@@ -1,4 +1,4 @@
-"""Body-tree topology as static index arrays (spec §1).
+"""Body-tree topology as static index arrays (docs/mathematics.md, "Structure of the tree").
 
 Computed once in NumPy and stored hashably (static fields); bodies are numbered parent-first;
 traced code sums over subtrees and paths with these arrays, never with a Python loop over bodies.
@@ -176,7 +176,7 @@ class BodyTree:
 
     @cached_property
     def path_matrix(self) -> np.ndarray:
-        """``T[k, i] = 1`` iff ``i`` is ``k`` or a carrier of ``k`` (spec §9.4: alpha = T q; NumPy)."""
+        """``T[k, i] = 1`` iff ``i`` is ``k`` or a carrier of ``k`` (docs/mathematics.md, "Corollary 7": alpha = T q; NumPy)."""
         return self.subtree_mask.T.astype(np.float64)
 
     # ------------------------------------------------------------------ traced helpers

@@ -1,4 +1,4 @@
-"""The dynamic decoupling check of Cor. 8 (as corrected in spec §10) for planar systems."""
+"""The dynamic decoupling check of Cor. 8 (as corrected in docs/mathematics.md, "Corollary 8") for planar systems."""
 
 from typing import NamedTuple
 
@@ -13,7 +13,7 @@ __all__ = ["DecouplingReport", "decoupling_report"]
 
 
 class DecouplingReport(NamedTuple):
-    """Result of :func:`decoupling_report` (spec §10, corrected Cor. 8).
+    """Result of :func:`decoupling_report` (docs/mathematics.md, "Corollary 8", corrected Cor. 8).
 
     Attributes:
         static_moment: ``m̄_k`` in body-``k`` axes, ``(n, 2)`` (NumPy).
@@ -43,7 +43,7 @@ def decoupling_report(
     seed: int = 0,
     atol: float = 1e-12,
 ) -> DecouplingReport:
-    """Dynamic decoupling check of Cor. 8 as corrected in spec §10 (concrete values, not traced).
+    """Dynamic decoupling check of Cor. 8 as corrected in docs/mathematics.md, "Corollary 8" (concrete values, not traced).
 
     The absolute-angle mass matrix is diagonal for all configurations iff ``m̄_k = 0`` for every
     body with a carrier (given non-zero hinge offsets ``R``); with a translating base, iff

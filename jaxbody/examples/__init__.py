@@ -1,4 +1,4 @@
-"""The papers' worked examples as ready systems (spec §11; defaults = tables of §12)."""
+"""The papers' worked examples as ready systems (the augmented-body paper's worked examples; defaults = the paper's reference tables)."""
 
 from ._embedded import EmbeddedPlanarSystem as EmbeddedPlanarSystem
 from .telegin import (

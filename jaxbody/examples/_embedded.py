@@ -4,7 +4,7 @@ The full planar system (:class:`~jaxbody.planar.PlanarSystem`) has coordinates `
 constrained one has independent coordinates ``q`` with ``Q = embed(t, q)``. Then
 ``Q̇ = A q̇ + ∂Q/∂t`` and ``Q̈ = A q̈ + c`` with ``A = ∂Q/∂q`` and ``c`` the second derivative
 of ``s ↦ embed(t + s, q + s q̇)`` (both from forward-mode autodiff). Projecting eqs (10)–(13)
-onto the admissible directions (Maggi's equations with ``A``, spec §13) gives
+onto the admissible directions (Maggi's equations with ``A``, docs/maggi.md, "Maggi's equations and the reactions") gives
 
     (Aᵀ ℳ A) q̈ = Aᵀ (τ(Q) − h(Q, Q̇) − ℳ c),
 

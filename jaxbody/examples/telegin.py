@@ -1,6 +1,6 @@
-"""The six worked examples of [T] (spec §11) as ready systems.
+"""The six worked examples of the augmented-body paper as ready systems.
 
-Every constructor's defaults are the data of the reference tables of spec §12, so e.g.
+Every constructor's defaults are the data of the reference tables of the paper's reference tables, so e.g.
 ``double_pendulum()`` reproduces T-1/T-3. Angles ``φ``/``α`` are measured **from the downward
 vertical**, counter-clockwise (eq. 14 convention); ``g = 9.81``.
 

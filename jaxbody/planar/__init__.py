@@ -1,4 +1,4 @@
-"""Planar systems with parallel hinge axes in absolute angles (spec §9–§10; [T] Cor. 5–7).
+"""Planar systems with parallel hinge axes in absolute angles (docs/mathematics.md, "Planar systems in absolute angles" to "Corollary 8"; the paper's Corollaries 5–7).
 
 Modules, re-exported here: :mod:`~jaxbody.planar.parameters` (the data of a planar system:
 tree, parameters, frames and angles), :mod:`~jaxbody.planar.system` (the :class:`PlanarSystem`

@@ -1,4 +1,4 @@
-"""Dynamics of planar systems in absolute angles (spec §9–§10; [T] Cor. 5–7).
+"""Dynamics of planar systems in absolute angles (docs/mathematics.md, "Planar systems in absolute angles" to "Corollary 8"; the paper's Corollaries 5–7).
 
 Coordinates, drives and loads as in :mod:`jaxbody.planar.parameters`: ``q = (x, y, q_1..q_n)``
 or ``(q_1..q_n)``, absolute angles; ``tau`` in the layout of ``v`` (base force, hinge drive
@@ -63,7 +63,7 @@ def split_base(system: PlanarParameters, x):
 
 
 def absolute_angles(system: PlanarParameters, q: Float[Array, " nq"]) -> Float[Array, " n_body"]:
-    """``θ_k = q_k + angle_origin``: absolute angles from ``i`` (spec §9.1)."""
+    """``θ_k = q_k + angle_origin``: absolute angles from ``i`` (docs/mathematics.md, "Planar systems in absolute angles")."""
     q = check_shape(q, (system.nq,), "q", "planar system")
     return split_base(system, q)[1] + system.angle_origin
 
@@ -126,7 +126,7 @@ def augmented_bodies(system: PlanarParameters, q: Float[Array, " nq"]) -> Augmen
 
 # ---------------------------------------------------------------------------------- dynamics
 def mass_matrix(system: PlanarParameters, q: Float[Array, " nq"]) -> Float[Array, "nv nv"]:
-    """Mass matrix in absolute angles (spec §9.3, from eqs 10–13).
+    """Mass matrix in absolute angles (docs/mathematics.md, "Corollary 6", from eqs 10–13).
 
     ``ℳ_kk = J_k``; ``ℳ_ki = ℳ_ik = R_{c(i,k)}·m̄_k`` for ``i`` a carrier of ``k``; zero when
     neither body carries the other. With a translating base the leading rows/columns are those of
@@ -158,7 +158,7 @@ def mass_matrix(system: PlanarParameters, q: Float[Array, " nq"]) -> Float[Array
 def bias_forces(
     system: PlanarParameters, q: Float[Array, " nq"], v: Float[Array, " nv"]
 ) -> Float[Array, " nv"]:
-    """Velocity-product and gravity terms ``h`` with ``ℳ q̈ + h = τ`` (spec §9.3, eqs 10–13).
+    """Velocity-product and gravity terms ``h`` with ``ℳ q̈ + h = τ`` (docs/mathematics.md, "Corollary 6", eqs 10–13).
 
     ``h_k = Σ_{i∈C(k)} (R_{c(i,k)} × m̄_k) θ̇_i² − Σ_{i∈S(k), i≠k} (R_{c(k,i)} × m̄_i) θ̇_i²
     − m̄_k × g``; base rows ``−Σ_k m̄_k θ̇_k² − M g`` (eqs 10–11).
@@ -284,7 +284,7 @@ def inverse_dynamics(
     external_force: Float[Array, "_n_body 2"] | None = None,
     external_moment: Float[Array, " _n_body"] | None = None,
 ) -> Float[Array, " nv"]:
-    """Drives that produce the accelerations ``a``, by Statement 1 (spec §9.4, eqs 1–2).
+    """Drives that produce the accelerations ``a``, by Statement 1 (docs/mathematics.md, "Corollary 7", eqs 1–2).
 
     The drive torque ``M_k`` is the moment about the hinge that the base body of ``k`` exerts
     on ``k`` (a hinge's reaction has no moment about its own axis); with a translating base
@@ -332,7 +332,7 @@ def root_force(
 ) -> Float[Array, "2"]:
     """Total force the ground (or the translating base) applies at the root hinges.
 
-    Eqs (10)–(11) written for the bodies only (with ``ẍ = ÿ = 0`` on the fixed ground, spec §9.3):
+    Eqs (10)–(11) written for the bodies only (with ``ẍ = ÿ = 0`` on the fixed ground, docs/mathematics.md, "Corollary 6"):
     ``F = m W + Σ_i [θ̈_i k×m̄_i − θ̇_i² m̄_i] − m g − Σ_i F_ri``, ``m`` = mass of the bodies.
     """
     roots = [k for k in range(system.n_body) if system.tree.parent[k] < 0]
@@ -372,7 +372,7 @@ def point_load(
 ) -> tuple[Float[Array, "n_body 2"], Float[Array, " n_body"]]:
     """External loads ``(F_r, M_r)`` of a force (world axes) applied at a point of ``body``.
 
-    ``M_r`` is the moment about the body's hinge ``O_k`` (spec §4), ready for
+    ``M_r`` is the moment about the body's hinge ``O_k`` (docs/mathematics.md, "Loads"), ready for
     :func:`generalized_forces`.
     """
     theta = absolute_angles(system, q)

@@ -1,4 +1,4 @@
-"""Joint-space view of planar systems: relative angles and Lagrange's equations in them (spec §9.4).
+"""Joint-space view of planar systems: relative angles and Lagrange's equations in them (docs/mathematics.md, "Corollary 7").
 
 ``α = T q`` maps joint (relative) angles to absolute ones; ``Tᵀ ℳ T`` and ``Tᵀ h`` are the mass
 matrix and bias of the joint-angle equations (the coordinates of a spatial model with the same
@@ -17,7 +17,7 @@ __all__ = ["absolute_to_relative", "relative_to_absolute", "joint_mass_matrix", 
 
 
 def absolute_to_relative(system: PlanarParameters, q: Float[Array, " nq"]) -> Float[Array, " nq"]:
-    """Joint (relative) angles ``q_k = θ_k − θ_{p(k)}`` (spec §9.4, ``α = T q``).
+    """Joint (relative) angles ``q_k = θ_k − θ_{p(k)}`` (docs/mathematics.md, "Corollary 7", ``α = T q``).
 
     Roots keep their angle (relative to the ground/base, in the system's angle convention); base
     coordinates pass through. Linear, so it converts rates and accelerations alike.
@@ -30,7 +30,7 @@ def absolute_to_relative(system: PlanarParameters, q: Float[Array, " nq"]) -> Fl
 
 
 def relative_to_absolute(system: PlanarParameters, q_rel: Float[Array, " nq"]) -> Float[Array, " nq"]:
-    """Absolute angles ``α = T q`` from joint angles: ``α_k = Σ_{i∈C(k)∪{k}} q_i`` (spec §9.4)."""
+    """Absolute angles ``α = T q`` from joint angles: ``α_k = Σ_{i∈C(k)∪{k}} q_i`` (docs/mathematics.md, "Corollary 7")."""
     q_rel = check_shape(q_rel, (system.nq,), "q_rel", "planar system")
     qb, r = split_base(system, q_rel)
     return jnp.concatenate([qb, system.tree.path_sum(r)])
@@ -42,7 +42,7 @@ def _transpose_path(system, x):
 
 
 def joint_mass_matrix(system: PlanarParameters, q: Float[Array, " nq"]) -> Float[Array, "nv nv"]:
-    """Joint-space mass matrix ``Tᵀ ℳ T`` (spec §9.4; identity on the base block)."""
+    """Joint-space mass matrix ``Tᵀ ℳ T`` (docs/mathematics.md, "Corollary 7"; identity on the base block)."""
     M = mass_matrix(system, q)
     nb = system.n_base
     Mbb, Mbt, Mtt = M[:nb, :nb], M[:nb, nb:], M[nb:, nb:]
@@ -56,7 +56,7 @@ def joint_mass_matrix(system: PlanarParameters, q: Float[Array, " nq"]) -> Float
 def joint_bias_forces(
     system: PlanarParameters, q: Float[Array, " nq"], v: Float[Array, " nv"]
 ) -> Float[Array, " nv"]:
-    """``Tᵀ h``: velocity and gravity terms of Lagrange's equations in joint angles (spec §9.4).
+    """``Tᵀ h``: velocity and gravity terms of Lagrange's equations in joint angles (docs/mathematics.md, "Corollary 7").
 
     ``v`` are the absolute rates (convert joint rates with :func:`relative_to_absolute`).
     """

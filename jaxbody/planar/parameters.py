@@ -6,7 +6,7 @@ normal to the plane of motion. Every root body is hinged either to the fixed gro
 
 Frames and angles
 -----------------
-* World axes: ``i`` horizontal, ``j`` vertical **up**, angles counter-clockwise (spec §9.1).
+* World axes: ``i`` horizontal, ``j`` vertical **up**, angles counter-clockwise (docs/mathematics.md, "Planar systems in absolute angles").
 * Each body has body-fixed axes with origin at its own hinge ``O_k``. Its **absolute angle**
   ``θ_k`` is the angle from ``i`` to the body-fixed x-axis, counter-clockwise.
 * The generalized coordinates are ``q = (x, y, q_1..q_n)`` with a translating base (``x, y``
@@ -19,7 +19,7 @@ Frames and angles
 * Velocities ``v = q̇`` (absolute angular rates ``θ̇_k``, base velocity).
 * Drive/generalized forces ``tau`` have the layout of ``v``: ``(F_x, F_y, M_1..M_n)`` with a
   base (``F`` = force on the base) or ``(M_1..M_n)``; ``M_k`` is the drive torque that the base
-  body of ``k`` (ground/base for roots) applies to body ``k`` about its hinge (spec §4).
+  body of ``k`` (ground/base for roots) applies to body ``k`` about its hinge (docs/mathematics.md, "Loads").
 
 Parameters (traced arrays, so ``jax.grad`` reaches them)
 ------------------------------------------------------
@@ -29,7 +29,7 @@ root: in world axes from the world origin, or from the base reference point); ``
 ``I_Ck`` (central, about the hinge-axis direction); ``gravity`` (2-vector); ``base_mass``.
 
 The augmented static moments ``m̄_k`` (eq. 5) and ``J_k`` (eq. 6, planar) are constants in body
-axes, which is what makes the absolute-angle form cheap: the mass matrix (spec §9.3) is
+axes, which is what makes the absolute-angle form cheap: the mass matrix (docs/mathematics.md, "Corollary 6") is
 ``ℳ_kk = J_k``, ``ℳ_ki = R_{c(i,k)}·m̄_k`` for carrier pairs, computed as gathers and
 scatters over the static carrier pairs (the trace does not grow with ``n``).
 """
@@ -48,7 +48,7 @@ __all__ = ["ParamLike", "PlanarParameters"]
 
 
 class PlanarParameters(eqx.Module):
-    """The data of a planar tree of hinged bodies in absolute angles (spec §9; see the module
+    """The data of a planar tree of hinged bodies in absolute angles (docs/mathematics.md, "Planar systems in absolute angles"; see the module
     docstring): what every function of :mod:`jaxbody.planar.dynamics` reads.
 
     The systems users hold are :class:`jaxbody.planar.PlanarSystem`, which adds the

@@ -35,7 +35,7 @@ DOWNWARD_VERTICAL = -0.5 * math.pi
 
 
 class PlanarSystem(PlanarParameters):
-    """A planar tree of hinged bodies in absolute angles (spec §9), as users hold it.
+    """A planar tree of hinged bodies in absolute angles (docs/mathematics.md, "Planar systems in absolute angles"), as users hold it.
 
     The data (tree, parameters, conventions) are those of
     :class:`~jaxbody.planar.parameters.PlanarParameters`. Build it with :func:`from_parents`,
@@ -106,7 +106,7 @@ def from_parents(
     names: Sequence[str] | None = None,
     angle_origin: float = 0.0,
 ) -> PlanarSystem:
-    """Build a planar tree (spec §9.1–9.3; Cor. 5 with ``base_mass``, Cor. 6 without).
+    """Build a planar tree (docs/mathematics.md, "Planar systems in absolute angles" to "Corollary 6"; Cor. 5 with ``base_mass``, Cor. 6 without).
 
     Args:
         parent: base body of each body, ``-1`` for a body hinged to the ground/base;
@@ -241,5 +241,5 @@ def vertical_to_horizontal(alpha: ArrayLike) -> Array:
 
 
 def horizontal_to_vertical(theta: ArrayLike) -> Array:
-    """``α = θ + π/2`` (``α_0k`` of spec §9.1): angle from ``i`` → angle from the downward vertical."""
+    """``α = θ + π/2`` (``α_0k`` of docs/mathematics.md, "Planar systems in absolute angles"): angle from ``i`` → angle from the downward vertical."""
     return jnp.asarray(theta) + 0.5 * math.pi
