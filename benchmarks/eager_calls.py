@@ -5,7 +5,7 @@
 
 For each model (shipped in ``jaxbody/models``, ``chainN``, or ``planar3``: the planar three-link
 manipulator of ``jaxbody.examples.telegin``, in absolute angles) and each of ``jb.inverse_dynamics``,
-``jb.forward_dynamics`` and ``jb.mass_matrix``: the time of the first call in a fresh process
+``jb.forward_dynamics``, ``jb.mass_matrix`` and a scene's ``acceleration`` (``jb.scene(model)``): the time of the first call in a fresh process
 (tracing and compiling included) and the median of ``--calls`` later calls, each with a new
 random state, the result waited for. No ``jax.jit`` around the call: this is what a user's
 loop over states pays. Every repeat runs in a fresh process; medians over the repeats.
@@ -23,7 +23,7 @@ import time
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 from _common import RESULTS, alternate, checkouts, load_average, markdown_table, stamp, stamp_markdown  # noqa: E402
 
-FUNCTIONS = ("inverse_dynamics", "forward_dynamics", "mass_matrix")
+FUNCTIONS = ("inverse_dynamics", "forward_dynamics", "mass_matrix", "scene_acceleration")
 #: the planar three-link manipulator of the augmented-body paper (``jaxbody.examples.telegin``)
 PLANAR = "planar3"
 
@@ -61,10 +61,12 @@ def _one(model_name: str, calls: int) -> dict:
             q = jb.normalize_qpos(model, jnp.asarray(np.asarray(model.qpos0) + 0.3 * rng.standard_normal(model.nq)))
             return q, jnp.asarray(rng.standard_normal(model.nv))
 
+    scene = jb.scene(model)  # the model's default effects; built before the clock starts
     run = {
         "inverse_dynamics": lambda q, v: jb.inverse_dynamics(model, q, v, v),
         "forward_dynamics": lambda q, v: jb.forward_dynamics(model, q, v),
         "mass_matrix": lambda q, v: jb.mass_matrix(model, q),
+        "scene_acceleration": lambda q, v: scene.acceleration(0.0, q, v),
     }
     out = {}
     for name in FUNCTIONS:
@@ -110,7 +112,7 @@ def main(argv=None):
                 runs = [r["times"][name] for r in record["runs"] if r["model"] == model and r["tree"] == tree]
                 first = float(np.median([r["first_s"] for r in runs]))
                 later = float(np.median([r["later_s"] for r in runs]))
-                rows.append((model, f"`jb.{name}`", tree, f"{first:.3f}", f"{1e3 * later:.2f}", len(runs)))
+                rows.append((model, "`scene.acceleration`" if name == "scene_acceleration" else f"`jb.{name}`", tree, f"{first:.3f}", f"{1e3 * later:.2f}", len(runs)))
     record["stamp"]["load_average_end"] = load_average()
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / f"{args.name}.json").write_text(json.dumps(record, indent=1))

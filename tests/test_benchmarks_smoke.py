@@ -396,7 +396,8 @@ def test_eager_calls_benchmark_smoke(tmp_path):
     """benchmarks/eager_calls.py: one model in a fresh process, first and later eager calls timed."""
     rec, md = _run_fresh("eager_calls.py", tmp_path, "--models", "chain2", "--calls", "2")
     (run,) = rec["runs"]
-    assert run["model"] == "chain2" and set(run["times"]) == {"inverse_dynamics", "forward_dynamics", "mass_matrix"}
+    assert run["model"] == "chain2" and set(run["times"]) == {"inverse_dynamics", "forward_dynamics", "mass_matrix",
+                                                            "scene_acceleration"}
     assert all(t["first_s"] > 0 and t["later_s"] > 0 for t in run["times"].values())
     assert "| chain2 | `jb.mass_matrix` | this tree |" in md
 
