@@ -396,3 +396,18 @@ DOUBLE_PENDULUM_MJCF = """<mujoco model="double_pendulum">
     </body>
   </worldbody>
 </mujoco>"""
+
+
+def shared_legend(fig, axes, n_used: int, **legend):
+    """Turn off the panels of ``axes`` past the first ``n_used`` and draw one legend for the figure,
+    each label once (the panels share their series), below the plots; returns the labels."""
+    for ax in list(axes.flat)[n_used:]:
+        ax.axis("off")
+    handles, labels = [], []
+    for ax in axes.flat:
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            if lab not in labels:
+                handles.append(h)
+                labels.append(lab)
+    fig.legend(handles, labels, loc="lower center", **legend)
+    return labels

@@ -737,15 +737,7 @@ def write_plot(results, path):
         ax.set_xlabel("batch size")
         ax.set_ylabel("system-steps / s (RK4)")
         ax.grid(True, which="both", alpha=0.3)
-    for ax in list(axes.flat)[len(models):]:
-        ax.axis("off")
-    handles, labels = [], []
-    for ax in axes.flat:
-        for h, lab in zip(*ax.get_legend_handles_labels()):
-            if lab not in labels:
-                handles.append(h)
-                labels.append(lab)
-    fig.legend(handles, labels, loc="lower center", ncol=5, fontsize=8, frameon=False)
+    _common.shared_legend(fig, axes, len(models), ncol=5, fontsize=8, frameon=False)
     s = results["stamp"]
     fig.suptitle(f"RK4 rollout throughput, commit {s['commit']}{' (dirty)' if s.get('dirty') else ''}, "
                  f"{s['cpu']} x{s['cores']}, load {s['load_average_start']}, jax {s['versions']['jax']}, "

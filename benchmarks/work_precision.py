@@ -54,6 +54,7 @@ from _common import (  # noqa: E402
     load_average,
     markdown_table,
     set_default_xla_flags,
+    shared_legend,
     stamp,
     stamp_markdown,
     time_per_call,
@@ -603,15 +604,8 @@ def plot(record, path, x="wall_s"):
         ax.set_xlabel("wall time (ms)" if x == "wall_s" else "vector-field evaluations")
         ax.set_ylabel("final-state error")
         ax.grid(True, which="both", alpha=0.3)
-    for ax in list(axes.flat)[len(names):]:
-        ax.axis("off")
-    handles, labels = [], []
-    for ax in axes.flat:
-        for h, lab in zip(*ax.get_legend_handles_labels()):
-            if lab not in labels:
-                handles.append(h)
-                labels.append(lab)
-    fig.legend(handles, labels, loc="lower center", ncol=min(7, len(labels)), fontsize=8)
+    labels = {lab for ax in axes.flat for lab in ax.get_legend_handles_labels()[1]}
+    labels = shared_legend(fig, axes, len(names), ncol=min(7, len(labels)), fontsize=8)
     fig.tight_layout(rect=(0, 0.08 if len(labels) > 7 else 0.05, 1, 1))
     fig.savefig(path, dpi=110)
     plt.close(fig)
