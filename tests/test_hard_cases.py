@@ -285,7 +285,7 @@ POLAR_CASES = {"adaptive": dict(solver="tsit5", rtol=1e-10, atol=1e-10, n_save=5
 @pytest.mark.parametrize("case", [pytest.param(c, marks=pytest.mark.slow) if c == "fixed" else c for c in sorted(POLAR_CASES)])
 def test_leaving_the_coordinate_chart_stops_with_its_name(case):
     """The step guard stops a solve whose accepted step leaves the scene's declared chart: result
-    ``singular`` at the first step that ends with r at or below the bound (the exact crossing time
+    ``singular_coordinates`` at the first step that ends with r at or below the bound (the exact crossing time
     from the straight line), the state there still equal to the exact motion; the message names the
     chart, the coordinate, the time and the advice, eagerly and when raised. In a batch the member
     that misses the origin finishes and equals its own solve (adaptive: the step guard's code;
@@ -295,7 +295,7 @@ def test_leaving_the_coordinate_chart_stops_with_its_name(case):
     t_cross = 1.0 - np.sqrt(system.bound**2 - HIT**2)  # |r(t)| = bound on the way in
     q0, v0 = polar_start(HIT)
     sol = jb.simulate(system, q0, v0, T_POLAR, throw=False, **kw)
-    assert not bool(sol.success) and bool(sol.result == jb.RESULTS.singular)
+    assert not bool(sol.success) and bool(sol.result == jb.RESULTS.singular_coordinates)
     tf = float(sol.t_final)
     assert t_cross <= tf and float(sol.q_final[0]) <= system.bound
     if case == "fixed":
@@ -309,7 +309,7 @@ def test_leaving_the_coordinate_chart_stops_with_its_name(case):
         jb.simulate(system, q0, v0, T_POLAR, **kw)
     q1, v1 = polar_start(MISS)
     batch = jb.simulate_batch(system, jnp.stack([q0, q1]), jnp.stack([v0, v1]), T_POLAR, **kw)
-    assert not bool(batch.success[0]) and bool(batch[0].result == jb.RESULTS.singular) and bool(batch.success[1])
+    assert not bool(batch.success[0]) and bool(batch[0].result == jb.RESULTS.singular_coordinates) and bool(batch.success[1])
     # a vmapped adaptive solve rounds its step sizes apart from the unbatched one by ulps
     np.testing.assert_allclose(float(batch.t_final[0]), tf, rtol=0, atol=1e-10)
     alone = jb.simulate(system, q1, v1, T_POLAR, **kw)
@@ -353,7 +353,7 @@ def test_rolling_disk_falling_flat():
     assert float(jnp.max(jnp.abs(before.constraint_drift["velocity"]))) < 1e-8
     across = jb.simulate(roll, q0, x0, 0.1, max_steps=2_000, **kw)
     bound = float(np.finfo(np.float64).eps) ** 0.25
-    assert bool(across.result == jb.RESULTS.singular) and 0.06 < float(across.t_final) < 0.0615
+    assert bool(across.result == jb.RESULTS.singular_coordinates) and 0.06 < float(across.t_final) < 0.0615
     assert np.isfinite(np.asarray(across.q_final)).all() and 0 < float(across.q_final[3]) <= bound
     # well within the step budget: the guard stops it, not max_steps
     print(f"flat disk: stopped at t = {float(across.t_final):.4g}, |sin θ| = {float(across.q_final[3]):.3g}, "
@@ -367,7 +367,7 @@ def test_rolling_disk_falling_flat():
     # a batch: the nearly flat disk beside one started steeper (θ = 0.3), which stays up until 0.1 s
     roll2, q1, x1 = flat_disk_start(theta0=0.3)
     batch = jb.simulate_batch(roll, jnp.stack([q0, q1]), jnp.stack([x0, x1]), 0.1, max_steps=2_000, **kw)
-    assert bool(batch[0].result == jb.RESULTS.singular) and bool(batch.success[1])
+    assert bool(batch[0].result == jb.RESULTS.singular_coordinates) and bool(batch.success[1])
     # the vmapped program rounds apart from the unbatched one, and the last steps before the bound
     # are short: the member stops at a neighbouring accepted step, below the same bound
     assert 0 < float(batch.q_final[0, 3]) <= bound
@@ -497,7 +497,7 @@ def test_float32_rolling_disk_falling_flat():
                                         saveat=jnp.linspace(0, 0.05, 6).astype(dtype), throw=False)
     roll, s32 = runs[np.float32]
     s64 = runs[np.float64][1]
-    assert s32.q.dtype == jnp.float32 and bool(s32.result == jb.RESULTS.singular)
+    assert s32.q.dtype == jnp.float32 and bool(s32.result == jb.RESULTS.singular_coordinates)
     assert 0.05 < float(s32.t_final) < float(s64.t_final)
     assert float(jnp.sin(s32.q_final[3])) <= EPS32**0.25 < 0.02
     assert "left their chart" in jb.simulation.explain_failure(roll, s32, 0.0, 0.1)

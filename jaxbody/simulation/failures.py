@@ -28,7 +28,9 @@ __all__ = ["raise_on_failure", "failure_message", "diagnose", "explain_failure",
 
 # a step this much shorter than the interval is a collapse, not a long motion
 _COLLAPSE = 1e-7
-# the step guard's code for a step that left the scene's coordinate chart
+# the step guard's code for a step that left the scene's coordinate chart, and diffrax's for a
+# singular solve (which a chart's margins may still explain)
+_CHART = int(np.asarray(result_code(RESULTS.singular_coordinates)))
 _SINGULAR = int(np.asarray(result_code(RESULTS.singular)))
 
 
@@ -185,7 +187,7 @@ def failure_message(failed, code, t, q, v, why: str | None = None, chart=None, m
     """The text of a :class:`SimulationError`: the first failed member's time, reason (from its
     result ``code``, or ``why`` from :func:`diagnose`) and state (``failed`` marks the failed
     members of a batch). With the scene's coordinate ``chart`` and its ``margins`` at the final
-    states, a member stopped with ``singular`` outside the chart is told so, naming the coordinate."""
+    states, a member stopped outside the chart is told so, naming the coordinate."""
     failed = np.asarray(failed)
     batch = failed.shape
     flat = failed.reshape(-1)
@@ -195,7 +197,7 @@ def failure_message(failed, code, t, q, v, why: str | None = None, chart=None, m
     t = float(np.broadcast_to(np.asarray(t), batch).reshape(-1)[i])
     q = np.asarray(q).reshape((-1,) + np.shape(q)[len(batch):])[i]
     v = np.asarray(v).reshape((-1,) + np.shape(v)[len(batch):])[i]
-    if why is None and chart is not None and margins is not None and code == _SINGULAR:
+    if why is None and chart is not None and margins is not None and code in (_CHART, _SINGULAR):
         m = np.asarray(margins)
         m = m.reshape((-1,) + m.shape[len(batch):])[i] if batch and m.ndim > 1 else m.reshape(-1)
         if not np.all(m > chart.limit(q.dtype)):
@@ -215,10 +217,12 @@ def _reason(code: int) -> str:
         return ("the state became NaN or inf (the motion blew up, e.g. a fixed step too large for stiff "
                 "dynamics, or a force returned NaN); the state shown is the first non-finite one, the "
                 "trajectory saved before it is finite")
+    if code == _CHART:
+        return ("a step ended outside the scene's coordinate chart (jaxbody.CoordinateChart): the coordinates "
+                "degenerate there; switch charts with an Event or use another formulation")
     if code == _SINGULAR:
-        return ("the coordinates or the equations of motion became singular at this state: a step ended outside "
-                "the scene's coordinate chart (jaxbody.scene.CoordinateChart), or a linear solve of the dynamics "
-                "failed")
+        return ("the equations of motion became singular at this state: a linear solve of the dynamics failed "
+                "(an implicit solver's Newton iteration, or a singular mass matrix)")
     # "successful" with a failed solve: diffrax stopped without a code of its own
     if code == int(np.asarray(result_code(RESULTS.successful))):
         return "the step-size controller or the solver's root finder failed"

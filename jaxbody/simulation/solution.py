@@ -49,6 +49,11 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "The coordinate partition of the constraints degraded (quality below partition_tolerance times the "
         "best partition's) and re-partitioning is off (jaxbody.maggi.constrain(..., repartition=False))."
     )
+    singular_coordinates = (
+        "A step left the scene's coordinate chart (jaxbody.CoordinateChart): its coordinates degenerate there "
+        "(e.g. Euler angles at their singular set), so the solve stopped at the last state they describe; "
+        "continue in another chart (an Event that switches coordinates) or with another formulation."
+    )
     singular_parametrisation = (
         "The constraints cannot be solved for the velocities at this state (jaxbody.maggi.MaggiResult."
         "singular_parametrisation): redundant constraints (a dead point of a linkage), or user characteristics "

@@ -38,8 +38,9 @@ from .field import VectorField
 from .native_solve import (native_adaptive_reverse, native_adaptive_solve, native_method, native_or_stepped,
                            native_reverse, native_solve, native_solve_applies, native_solve_enabled)
 from .solution import RESULTS, Solution, balance_scale, energy_balance, ran_by, solution_layout
+from .prefetch import prefetch_first, prefetch_solve
 from .partitioning import PartitionSolver, partition_report, partition_solver, with_best_partition
-from .solvers import Guarded, apply_failure, choose_solver, failure_record, for_adjoint, recording_depth
+from .solvers import Guarded, apply_failure, chart_outcome, choose_solver, failure_record, for_adjoint, recording_depth
 
 __all__ = ["simulate_scene", "integrate", "make_event", "progress_meter"]
 
@@ -67,6 +68,8 @@ def simulate_scene(
         )
     for name, val in (("rtol", rtol), ("atol", atol), ("dt0", dt0)):
         check_positive(name, val)
+    # the native builds start now, beside everything below (an empty cache: seconds of compiler)
+    prefetch_first(scene, q0, solver if isinstance(solver, str) else None)
     if max_steps is not None:
         check_positive("max_steps", max_steps, integer=True)
     if not phase_start and is_concrete(t0, t1) and not float(np.asarray(t1)) > float(np.asarray(t0)):
@@ -155,10 +158,11 @@ def simulate_scene(
     else:
         y0 = (q0, v0)
     meter = progress_meter(progress)
+    event = make_event(event, q0.dtype)
+    prefetch_solve(scene, y0, solver_obj, controller, saveat, adjoint, meter, event, dense, slots)
     # the layout and the native switch are computed out here: static arguments of the compiled solve
     sol, w_final = _solve(scene, y0, t0, t1, valid, solver_obj, controller, dt0, saveat, max_steps, adjoint, meter,
-                          make_event(event, q0.dtype), solution_layout(scene), dense, slots, tuple(work_names),
-                          native_solve_enabled())
+                          event, solution_layout(scene), dense, slots, tuple(work_names), native_solve_enabled())
     if correction is not None:
         sol = dataclasses.replace(sol, stats={**sol.stats, "v0_correction": correction})
     sol = dataclasses.replace(sol, **ran_by(scene, solver))
@@ -269,7 +273,7 @@ def integrate(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_ste
     ys, yf = (sol.ys, sol.ys) if single else sol.ys
     ts, tf = (sol.ts, sol.ts) if single else sol.ts
     stats = {k: jnp.asarray(sol.stats[k]) for k in ("num_steps", "num_accepted_steps", "num_rejected_steps")}
-    result = RESULTS.promote(sol.result)
+    result = chart_outcome(scene, valid, yf[0][-1], RESULTS.promote(sol.result))
     failure = None if depth is None else failure_record(sol.solver_state, depth)
     if failure is not None:
         # a trajectory that failed has no derivative to give: no cotangent enters the loop's state

@@ -44,6 +44,7 @@ __all__ = [
     "recording_depth",
     "failure_record",
     "apply_failure",
+    "chart_outcome",
 ]
 
 
@@ -344,6 +345,15 @@ def _inside_chart(args, y1):
     return inside if valid is None else inside | ~valid
 
 
+def chart_outcome(scene, valid, q_final, result):
+    """``result`` with diffrax's ``singular`` made :attr:`RESULTS.singular_coordinates` where the
+    solve stopped outside the scene's coordinate chart: the step guard's code (inside diffrax's
+    loop only diffrax's own codes exist) told apart from a failed linear solve, which also gives
+    ``singular``."""
+    left = ~_inside_chart((scene, valid), (q_final,))
+    return RESULTS.where((result == RESULTS.singular) & left, RESULTS.singular_coordinates, result)
+
+
 def recording_depth(solver) -> int | None:
     """How many wrappers (a PartitionSolver) sit above a recording :class:`Guarded` in
     ``solver``; ``None`` when it has none."""
@@ -364,7 +374,7 @@ def failure_record(solver_state, depth: int):
 
 def apply_failure(failure, ts, ys, tf, stats, result, final_is_last):
     """Each trajectory's own outcome from the recorded first failure: the result ``nonfinite``
-    (``singular`` for a step that left the scene's coordinate chart),
+    (``singular_coordinates`` for a step that left the scene's coordinate chart),
     the end time of the failing step as the final time (the state stayed there), the step counts
     up to it, and the saved times after it padded with ``inf`` as diffrax pads times a solve
     never reached (``final_is_last``: the last saved point is the final state, diffrax's
@@ -381,7 +391,7 @@ def apply_failure(failure, ts, ys, tf, stats, result, final_is_last):
     tf = tf.at[-1].set(jnp.where(failed, failure.t, tf[-1]))
     steps = jnp.where(failed, failure.steps, stats["num_steps"])
     stats = {**stats, "num_steps": steps, "num_accepted_steps": jnp.where(failed, steps, stats["num_accepted_steps"])}
-    result = RESULTS.where(failed, RESULTS.where(failure.chart, RESULTS.singular, RESULTS.nonfinite), result)
+    result = RESULTS.where(failed, RESULTS.where(failure.chart, RESULTS.singular_coordinates, RESULTS.nonfinite), result)
     return ts, ys, tf, stats, result
 
 

@@ -70,8 +70,8 @@ dynamics), :mod:`.step`, :mod:`.solve` and :mod:`.energy` (one RK4 step, whole s
 """
 
 from .adaptive import Control, adaptive_checkpoint_layout, adaptive_solve, adaptive_solve_vjp
-from .build import (BUILDS, MAX_MASS_ENTRIES, SPIN_NS, WIDE_BATCH, applies, available, build_for, mass_matrix_entries, threads,
-                    too_large_reason, unavailable_reason)
+from .build import (BUILDS, MAX_MASS_ENTRIES, SPIN_NS, WIDE_BATCH, applies, available, build_for, mass_matrix_entries,
+                    prefetch, threads, too_large_reason, unavailable_reason)
 from .codegen import MODES
 from .energy import energies
 from .primitives import MAX_DERIVATIVE_DOFS, forward_dynamics
@@ -91,6 +91,7 @@ __all__ = [
     "SPIN_NS",
     "WIDE_BATCH",
     "applies",
+    "prefetch",
     "available",
     "build_for",
     "checkpoint_layout",

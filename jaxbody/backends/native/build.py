@@ -1,6 +1,7 @@
 """Building and loading the native kernel: the compiler, the on-disk cache, the XLA FFI target
 and the batched call of one compiled program."""
 
+import concurrent.futures
 import contextlib
 import ctypes
 import functools
@@ -182,13 +183,18 @@ def _exclusive(fh):
         fcntl.flock(fh, fcntl.LOCK_UN)
 
 
-@functools.cache
-def _handler(dtype) -> str:
-    """The FFI target name of the (tree-independent) handler for ``dtype``; built and registered once."""
+def _handler_library(dtype) -> Path:
+    """The (tree-independent) handler library for ``dtype``, built where the cache lacks it."""
     scalar, ffi_type = SCALAR_TYPES[np.dtype(dtype)]
     source = (HANDLER_TEMPLATE.replace("@COMMON@", COMMON_TEMPLATE.replace("@T@", scalar)).replace("@DT@", ffi_type)
               .replace("@SPIN_NS@", str(int(os.environ.get("JAXBODY_NATIVE_SPIN_NS", SPIN_NS)))))
-    path = build_library(source, f"handler_{scalar}")
+    return build_library(source, f"handler_{scalar}")
+
+
+@functools.cache
+def _handler(dtype) -> str:
+    """The FFI target name of the (tree-independent) handler for ``dtype``; built and registered once."""
+    path = _handler_library(dtype)
     lib = ctypes.cdll.LoadLibrary(str(path))
     name = f"jaxbody_native_{path.stem}"
     jax.ffi.register_ffi_target(name, jax.ffi.pycapsule(lib.jaxbody_fd), platform="cpu")
@@ -237,7 +243,6 @@ class Kernel:
         self.widths = result_widths(joints, mode, harmonics)
         if harmonics is not None and not (mode in ("rk4", "rk4_run", "rk4_run_vjp") or mode.startswith("adaptive")):
             raise ValueError(f"a Fourier-series joint torque is evaluated by the RK4 step and the whole solves, not {mode!r}")
-        self.target = _handler(self.dtype)
         if mode == "rk4_run":
             self.source = generate_run(tree, joints, self.dtype, harmonics)
         elif mode == "rk4_run_vjp":
@@ -250,24 +255,44 @@ class Kernel:
             self.source = generate(tree, joints, with_external, self.dtype, mode, harmonics)
         self._addresses = {}  # built on the first call (traced), where a build error then shows
         self._batched = {}
+        # this kernel's builds take turns; other kernels build beside them (see prefetch)
+        self._build_lock = threading.Lock()
         if mode in ("fd", "rk4", "energy", "rk4_run", "rk4_run_vjp") or mode.startswith("adaptive_vjp:"):
             self.batched = self.batched_with(self.widths)
+
+    @property
+    def target(self) -> str:
+        """The FFI target of the handler this kernel's programs are registered with (built on
+        first use, not with the kernel: a kernel's code is generated while the handler builds)."""
+        return _handler(self.dtype)
 
     def address(self, build: str) -> int:
         """The key of the compiled program of one of :data:`BUILDS` (built and registered with the
         handler on its first call); the traced call passes this key, not an address, so that
         the compiled XLA program is the same in every process (JAX's persistent cache)."""
-        with _lock:  # two threads tracing the same kernel build it once
+        with self._build_lock:  # two threads tracing the same kernel build it once
             if build not in self._addresses:
-                source = self.source.replace("@VECTOR_BYTES@", BUILDS[build])
-                stem = self.mode.replace(":", "_") + ("" if self.harmonics is None else f"_fourier{self.harmonics}")
-                library = build_library(source, f"{stem}_{build}")
-                lib = ctypes.cdll.LoadLibrary(str(library))
-                _loaded.append(lib)
-                key = _program_key(library)
-                _handlers[self.target].jaxbody_register(key, ctypes.cast(lib.jaxbody_range, ctypes.c_void_p).value)
+                library = self.library(build)
+                with _lock:
+                    lib = ctypes.cdll.LoadLibrary(str(library))
+                    _loaded.append(lib)
+                    key = _program_key(library)
+                    _handlers[self.target].jaxbody_register(key, ctypes.cast(lib.jaxbody_range, ctypes.c_void_p).value)
                 self._addresses[build] = key
             return self._addresses[build]
+
+    def library(self, build: str) -> Path:
+        """The shared library of one of :data:`BUILDS`, built where the cache lacks it (not loaded)."""
+        source = self.source.replace("@VECTOR_BYTES@", BUILDS[build])
+        stem = self.mode.replace(":", "_") + ("" if self.harmonics is None else f"_fourier{self.harmonics}")
+        return build_library(source, f"{stem}_{build}")
+
+    def build_for(self, batch: int) -> str:
+        """Which of :data:`BUILDS` runs a call over ``batch`` states (:func:`build_for`), except
+        that an energy program has one build for every batch: it runs off the solve's hot path
+        (the energies of the saved states and of the initial one), where its scalar build would
+        cost a second compilation on first use for microseconds per call."""
+        return build_for(max(batch, WIDE_BATCH) if self.mode in SINGLE_BUILD_MODES else batch)
 
     def call(self, *args, widths=None) -> list:
         """``args``: ``(B_i, n_i)`` arrays with ``B_i`` 1 or the batch size; returns ``(B, width)``
@@ -277,7 +302,7 @@ class Kernel:
         fn = jax.ffi.ffi_call(self.target, out, vmap_method="sequential")
         # every lane of a SIMD register is one state: the kernel gathers W states' inputs; the
         # batch size is static here, so the build is chosen (and built) when the call is traced
-        address = self.address(build_for(batch))
+        address = self.address(self.build_for(batch))
         return fn(*args, kernel=np.int64(address), threads=np.int64(threads()))
 
     def batched_with(self, widths: tuple):
@@ -325,9 +350,72 @@ def _has_avx512() -> bool:
     return " avx512f" in _cpu_signature()
 
 
-@functools.lru_cache(maxsize=256)
+#: Modes with one build for every batch size (:meth:`Kernel.build_for`).
+SINGLE_BUILD_MODES = ("energy",)
+
+
+_kernels: dict = {}
+_kernel_locks: dict = {}
+
+
 def compiled_kernel(tree, joints, with_external: bool, dtype, mode: str = "fd", harmonics: int | None = None) -> Kernel:
     """The :class:`Kernel` of a tree, dtype and mode (and a whole solve's Fourier-series joint
     torque of ``harmonics`` harmonics), made once per process (its builds on first call)."""
+    key = (tree, joints, with_external, np.dtype(dtype), mode, harmonics)
+    kernel = _kernels.get(key)
+    if kernel is not None:
+        return kernel
+    # one lock per kernel: generating one kernel's code does not hold up another's (a build
+    # ahead of use generates in a background thread while the trace asks for other kernels)
     with _lock:
-        return Kernel(tree, joints, with_external, dtype, mode, harmonics)
+        lock = _kernel_locks.setdefault(key, threading.Lock())
+    with lock:
+        if key not in _kernels:
+            _kernels[key] = Kernel(tree, joints, with_external, dtype, mode, harmonics)
+        return _kernels[key]
+
+
+# ----------------------------------------------------------------------------- builds ahead of use
+_pool: concurrent.futures.ThreadPoolExecutor | None = None
+
+
+def _builders() -> concurrent.futures.ThreadPoolExecutor:
+    global _pool
+    with _lock:
+        if _pool is None:
+            # more threads than cores: a solve's few builds all start at once (the compilers
+            # share the cores; a build queued behind another would start only when it ends)
+            _pool = concurrent.futures.ThreadPoolExecutor(max_workers=max(4, os.cpu_count() or 1),
+                                                          thread_name_prefix="jaxbody-build")
+        return _pool
+
+
+def _build_quietly(build):
+    try:
+        build()
+    except Exception:  # noqa: BLE001 (the traced call builds again and raises with the compiler's message)
+        pass
+
+
+def prefetch(model: Model, modes: tuple[str, ...], harmonics: int | None = None,
+             batch: int = 1) -> list[concurrent.futures.Future]:
+    """Start building, in background threads, the handler and the programs ``modes`` of
+    ``model``'s tree for calls over ``batch`` states, where the cache lacks them.
+
+    A solve traces its native calls one after another, and each call's first use waits for the
+    C++ compiler: with an empty cache those builds are most of a first simulation. Started
+    together before the trace they run beside one another (one compiler process per core) and
+    beside the tracing, and each traced call then finds its library built, or waits for that
+    build alone (:func:`build_library`'s lock). Nothing is loaded or registered here, and a
+    failed build is left for the traced call to report. Returns the builds' futures."""
+    if not available():
+        return []
+    pool = _builders()
+    dtype = np.dtype(model.body_pos.dtype)
+    futures = [pool.submit(_build_quietly, lambda: _handler_library(dtype))]
+    for mode in modes:
+        def build(mode=mode):
+            kernel = compiled_kernel(model.tree, model.joints, False, dtype, mode, harmonics)
+            kernel.library(kernel.build_for(batch))
+        futures.append(pool.submit(_build_quietly, build))
+    return futures

@@ -51,20 +51,27 @@ def _dense_coefficients(cls, stages: int, b: np.ndarray) -> np.ndarray:
     check = np.linspace(0.0, 1.0, 9)
     # concrete even when first asked for while a solve is traced
     with jax.enable_x64(True), jax.ensure_compile_time_eval():
-        def values(i, xs):
-            k = jnp.zeros((stages, 1), jnp.float64).at[i, 0].set(1.0)
-            # h = 1, y₀ = 0: y₁ = b·k (first same as last: the solution is the last stage's)
+        def interpolant(unit, x):
+            # h = 1, y₀ = 0, k the unit vector of one stage: y₁ = b·k (first same as last: the
+            # solution is the last stage's)
             interp = cls.interpolation_cls(t0=jnp.float64(0.0), t1=jnp.float64(1.0), y0=jnp.zeros(1, jnp.float64),
-                                           y1=jnp.asarray([b[i]], jnp.float64), k=k)
-            return np.array([float(interp.evaluate(jnp.float64(x))[0]) for x in xs])
+                                           y1=(jnp.asarray(b) @ unit)[None], k=unit[:, None])
+            return interp.evaluate(x)[0]
 
-        for degree in range(1, stages + 2):
+        # every stage at every point of every candidate degree in one batched evaluation (one by
+        # one, the hundreds of small eager evaluations cost seconds of a first adaptive solve)
+        every = jax.vmap(jax.vmap(interpolant, (None, 0)), (0, None))
+        degrees = range(1, stages + 2)
+        nodes = {d: 0.5 - 0.5 * np.cos(np.pi * (np.arange(d) + 0.5) / d) for d in degrees}
+        points = np.concatenate([check, *nodes.values()])
+        table = np.asarray(jax.jit(every)(jnp.eye(stages, dtype=jnp.float64), jnp.asarray(points, jnp.float64)))
+        exact, start = table[:, : check.size].T, check.size
+        for degree in degrees:
             # every interpolant starts at y₀ (no constant term): fit θ¹ .. θ^degree
-            nodes = 0.5 - 0.5 * np.cos(np.pi * (np.arange(degree) + 0.5) / degree)
-            vander = np.vander(nodes, degree + 1, increasing=True)[:, 1:]
-            P = np.array([np.concatenate([[0.0], np.linalg.solve(vander, values(i, nodes))]) for i in range(stages)])
+            vander = np.vander(nodes[degree], degree + 1, increasing=True)[:, 1:]
+            at_nodes, start = table[:, start : start + degree], start + degree
+            P = np.concatenate([np.zeros((stages, 1)), np.linalg.solve(vander, at_nodes.T).T], axis=1)
             fitted = np.vander(check, degree + 1, increasing=True) @ P.T
-            exact = np.array([values(i, check) for i in range(stages)]).T
             if np.max(np.abs(fitted - exact)) <= 1e-12 * max(1.0, np.max(np.abs(exact))):
                 return P
     raise AssertionError(f"{cls.__name__}'s interpolant is not a polynomial in θ")
