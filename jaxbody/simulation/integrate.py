@@ -186,7 +186,7 @@ def simulate(
         first = system.scenes[0] if isinstance(system, Phases) else as_scene(system, tau)
         # the native builds start now, beside the choice (an empty cache: seconds of compiler),
         # the solve's program among them where the scene proves not stiff
-        prefetch_first(first, q0, explicit_method(target_error))
+        prefetch_first(first, q0, None if event is not None or dense or progress else explicit_method(target_error))
         choice = choose_auto(first, q0, t0, t1, dtype, rtol, atol, target_error)
         solver, rtol, atol = choice.solver, choice.rtol, choice.atol
     elif target_error is not None:

@@ -69,7 +69,8 @@ def simulate_scene(
     for name, val in (("rtol", rtol), ("atol", atol), ("dt0", dt0)):
         check_positive(name, val)
     # the native builds start now, beside everything below (an empty cache: seconds of compiler)
-    prefetch_first(scene, q0, solver if isinstance(solver, str) else None)
+    # (the solve's own program is named below, once its settings are known)
+    prefetch_first(scene, q0, None)
     if max_steps is not None:
         check_positive("max_steps", max_steps, integer=True)
     if not phase_start and is_concrete(t0, t1) and not float(np.asarray(t1)) > float(np.asarray(t0)):
