@@ -132,10 +132,10 @@ def _worker(case: str, cassie: str | None) -> dict:
 
             arg = gains
     else:
-        from maggi import disk_states, four_bar
+        from maggi import disk_state, four_bar
 
         if case == "disk":
-            _, system, q0, v0 = disk_states()[2]
+            _, system, q0, v0 = disk_state("rolling")
         else:
             system, q0, v0 = four_bar()
         out["model_s"] = time.perf_counter() - t

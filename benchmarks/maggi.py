@@ -30,18 +30,22 @@ from jaxbody.examples import disk as dk  # noqa: E402
 RHO, TH = 0.3, 1.2
 
 
-def disk_states():
+DISKS = {"sliding": dk.sliding_disk, "skating": dk.skating_disk, "rolling": dk.rolling_disk}
+
+
+def disk_state(regime):
+    """``(regime, system, q0, x0)`` of the disk in one regime, its velocities admissible there."""
     q0 = jnp.array([0.0, 0.0, 0.0, TH, 0.0])
-    x = [0.3, -0.5, 6.0, 0.7, 0.2]
-    out = []
-    for regime, system in zip(("sliding", "skating", "rolling"), (dk.sliding_disk(), dk.skating_disk(), dk.rolling_disk())):
-        xx = list(x)
-        if regime != "sliding":
-            xx[4] = -RHO * np.sin(TH) * xx[0]
-        if regime == "rolling":
-            xx[3] = -RHO * xx[2]
-        out.append((regime, system, q0, jnp.asarray(xx)))
-    return out
+    xx = [0.3, -0.5, 6.0, 0.7, 0.2]
+    if regime != "sliding":
+        xx[4] = -RHO * np.sin(TH) * xx[0]
+    if regime == "rolling":
+        xx[3] = -RHO * xx[2]
+    return regime, DISKS[regime](), q0, jnp.asarray(xx)
+
+
+def disk_states():
+    return [disk_state(regime) for regime in DISKS]
 
 
 def four_bar():

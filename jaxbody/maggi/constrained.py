@@ -155,6 +155,7 @@ class ConstrainedSystem(eqx.Module):
         the partition changes inside a solve, and XLA's dynamic gathers are slow on CPU)."""
         return (self.free[:, None] == jnp.arange(self.nv, dtype=self.free.dtype)[None, :]).astype(jnp.asarray(x).dtype)
 
+    @compiled_when_eager
     def parametrisation(self, t, q, x) -> tuple[Array, Array, Array]:
         """``(A, K, pivot_ratio)`` with ``[A | K] = (∂ε̃/∂x)⁻¹`` (M.8–M.9)."""
         n, s = self.nv, self.n_constraint
