@@ -39,6 +39,7 @@ Newton–Euler passes (:func:`inverse_dynamics`) and its hand-derived adjoint
 """
 
 import functools
+import math
 from collections.abc import Sequence
 from typing import no_type_check
 
@@ -199,13 +200,19 @@ def _quat_matrix(w, x, y, z):
 
 @no_type_check
 def _cos(a):
-    # symbolic scalars (the native kernel's tracer, jaxbody.backends.native.symbolic) carry their own
-    return a.cos() if getattr(a, "symbolic", False) else jnp.cos(a)
+    # symbolic scalars (the native kernel's tracer, jaxbody.backends.native.symbolic) carry their
+    # own; plain numbers (NumPy's included) stay numbers, so the algebra also runs on the host
+    # with no program compiled (:func:`mass_matrix_of_numbers`)
+    if getattr(a, "symbolic", False):
+        return a.cos()
+    return math.cos(a) if isinstance(a, float) else jnp.cos(a)
 
 
 @no_type_check
 def _sin(a):
-    return a.sin() if getattr(a, "symbolic", False) else jnp.sin(a)
+    if getattr(a, "symbolic", False):
+        return a.sin()
+    return math.sin(a) if isinstance(a, float) else jnp.sin(a)
 
 
 def _axis_angle(axis, angle):

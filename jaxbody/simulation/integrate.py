@@ -20,7 +20,7 @@ from ..model import Model
 from ..scene import Event, Phases, Scene, SystemScene, own_constraints, scene as build_scene
 from .phases import simulate_phases
 from .solution import Solution
-from .auto import choose_auto, default_tolerance, explicit_method, warn_below_resolution
+from .auto import choose_auto, default_tolerance, warn_below_resolution
 from .prefetch import prefetch_first
 from .solve import simulate_scene
 
@@ -184,9 +184,8 @@ def simulate(
     choice = None
     if isinstance(solver, str) and solver == "auto":
         first = system.scenes[0] if isinstance(system, Phases) else as_scene(system, tau)
-        # the native builds start now, beside the choice (an empty cache: seconds of compiler),
-        # the solve's program among them where the scene proves not stiff
-        prefetch_first(first, q0, None if event is not None or dense or progress else explicit_method(target_error))
+        # the native builds start now, beside the choice (an empty cache: seconds of compiler)
+        prefetch_first(first, q0)
         choice = choose_auto(first, q0, t0, t1, dtype, rtol, atol, target_error)
         solver, rtol, atol = choice.solver, choice.rtol, choice.atol
     elif target_error is not None:

@@ -10,6 +10,7 @@ beside the tracing (:func:`jaxbody.backends.native.prefetch`). A wrong guess cos
 the background and changes no result: the traced calls build whatever they need themselves.
 """
 
+import diffrax
 import jax
 
 from ..backends import native
@@ -38,23 +39,13 @@ def _batched(x) -> bool:
     return type(x).__name__ == "BatchTracer"
 
 
-def prefetch_first(scene, q0, method: str | None) -> list:
-    """Start the builds of the handler, the energy program of ``scene``'s native kernel (the
-    first thing a solve and ``solver="auto"``'s estimate of the scene call) and, for a ``method``
-    (a preset name, or what ``solver="auto"`` takes where the scene is not stiff) that runs as one
-    native call on this scene, its program: the likely solve builds while the choice is made.
-    Returns the builds' futures."""
+def prefetch_first(scene, q0) -> list:
+    """Start the builds of the handler and the energy program of ``scene``'s native kernel (the
+    first things a solve calls). Returns the builds' futures."""
     model = _native_model(scene)
     if model is None or _batched(q0):
         return []
-    futures = native.prefetch(model, ("energy",) if scene.has_energy else ())
-    # the scene's field must be the native programs' own: its effects decide, not the state
-    plan = native_field(scene, (q0, q0), (), timed=True)
-    if plan is None or method not in ("rk4", "tsit5", "dopri5", "dopri8"):
-        return futures
-    torque = plan[2].get("torque")
-    harmonics = None if torque is None else int(torque[1].shape[-1])
-    return futures + native.prefetch(model, ("rk4_run" if method == "rk4" else f"adaptive:{method}",), harmonics)
+    return native.prefetch(model, ("energy",) if scene.has_energy else ())
 
 
 def prefetch_solve(scene, y0, solver, controller, saveat, adjoint, meter, event, dense, slots) -> list:
@@ -84,4 +75,8 @@ def prefetch_solve(scene, y0, solver, controller, saveat, adjoint, meter, event,
     step = "rk4" if type(getattr(solver, "solver", None)) is RK4Stages else "fd"
     modes = [step] + ([f"{step}_jvp" if step == "rk4" else "jvp", f"{step}_vjp" if step == "rk4" else "vjp"]
                       if derivative else [])
-    return futures + native.prefetch(model, tuple(modes))
+    futures += native.prefetch(model, tuple(modes))
+    if isinstance(solver, diffrax.AbstractImplicitSolver) and not derivative:
+        # an implicit solver's Jacobian: the forward-mode program over a batch of nv tangents
+        futures += native.prefetch(model, ("jvp",), batch=model.nv)
+    return futures

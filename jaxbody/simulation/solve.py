@@ -70,7 +70,7 @@ def simulate_scene(
         check_positive(name, val)
     # the native builds start now, beside everything below (an empty cache: seconds of compiler)
     # (the solve's own program is named below, once its settings are known)
-    prefetch_first(scene, q0, None)
+    prefetch_first(scene, q0)
     if max_steps is not None:
         check_positive("max_steps", max_steps, integer=True)
     if not phase_start and is_concrete(t0, t1) and not float(np.asarray(t1)) > float(np.asarray(t0)):

@@ -194,6 +194,7 @@ def _handler_library(dtype) -> Path:
 @functools.cache
 def _handler(dtype) -> str:
     """The FFI target name of the (tree-independent) handler for ``dtype``; built and registered once."""
+    _await_prefetch(("handler", np.dtype(dtype)))
     path = _handler_library(dtype)
     lib = ctypes.cdll.LoadLibrary(str(path))
     name = f"jaxbody_native_{path.stem}"
@@ -272,6 +273,8 @@ class Kernel:
         the compiled XLA program is the same in every process (JAX's persistent cache)."""
         with self._build_lock:  # two threads tracing the same kernel build it once
             if build not in self._addresses:
+                # a build started ahead of use (prefetch) is waited for, not raced
+                _await_prefetch((self.key, build))
                 library = self.library(build)
                 with _lock:
                     lib = ctypes.cdll.LoadLibrary(str(library))
@@ -292,7 +295,7 @@ class Kernel:
         that an energy program has one build for every batch: it runs off the solve's hot path
         (the energies of the saved states and of the initial one), where its scalar build would
         cost a second compilation on first use for microseconds per call."""
-        return build_for(max(batch, WIDE_BATCH) if self.mode in SINGLE_BUILD_MODES else batch)
+        return _build_of(self.mode, batch)
 
     def call(self, *args, widths=None) -> list:
         """``args``: ``(B_i, n_i)`` arrays with ``B_i`` 1 or the batch size; returns ``(B, width)``
@@ -354,6 +357,10 @@ def _has_avx512() -> bool:
 SINGLE_BUILD_MODES = ("energy",)
 
 
+def _build_of(mode: str, batch: int) -> str:
+    return build_for(max(batch, WIDE_BATCH) if mode in SINGLE_BUILD_MODES else batch)
+
+
 _kernels: dict = {}
 _kernel_locks: dict = {}
 
@@ -371,7 +378,9 @@ def compiled_kernel(tree, joints, with_external: bool, dtype, mode: str = "fd", 
         lock = _kernel_locks.setdefault(key, threading.Lock())
     with lock:
         if key not in _kernels:
-            _kernels[key] = Kernel(tree, joints, with_external, dtype, mode, harmonics)
+            kernel = Kernel(tree, joints, with_external, dtype, mode, harmonics)
+            kernel.key = key
+            _kernels[key] = kernel
         return _kernels[key]
 
 
@@ -406,16 +415,39 @@ def prefetch(model: Model, modes: tuple[str, ...], harmonics: int | None = None,
     C++ compiler: with an empty cache those builds are most of a first simulation. Started
     together before the trace they run beside one another (one compiler process per core) and
     beside the tracing, and each traced call then finds its library built, or waits for that
-    build alone (:func:`build_library`'s lock). Nothing is loaded or registered here, and a
-    failed build is left for the traced call to report. Returns the builds' futures."""
+    build to end (a library is built once, by the thread that asked first). Nothing is loaded or
+    registered here, and a failed build is left for the traced call to report. Returns the
+    builds' futures."""
     if not available():
         return []
-    pool = _builders()
     dtype = np.dtype(model.body_pos.dtype)
-    futures = [pool.submit(_build_quietly, lambda: _handler_library(dtype))]
+    futures = [_ahead(("handler", dtype), lambda: _handler_library(dtype))]
     for mode in modes:
-        def build(mode=mode):
-            kernel = compiled_kernel(model.tree, model.joints, False, dtype, mode, harmonics)
-            kernel.library(kernel.build_for(batch))
-        futures.append(pool.submit(_build_quietly, build))
+        key, build = (model.tree, model.joints, False, dtype, mode, harmonics), _build_of(mode, batch)
+
+        def run(key=key, build=build):
+            # the code is generated here too, beside the caller's own work
+            compiled_kernel(*key).library(build)
+        futures.append(_ahead((key, build), run))
     return futures
+
+
+_ahead_of_use: dict = {}  # (cache, kernel key or "handler", build or dtype) -> the future of its build
+
+
+def _ahead(key, build) -> concurrent.futures.Future:
+    """The future of a build started ahead of use (one per library, cache directory and process)."""
+    key = (str(cache_root()), *key)
+    with _lock:
+        if key not in _ahead_of_use:
+            _ahead_of_use[key] = _builders().submit(_build_quietly, build)
+        return _ahead_of_use[key]
+
+
+def _await_prefetch(key) -> None:
+    """Wait for the build of ``key`` where one was started ahead of use (a library a traced call
+    is about to load is then built once, by the thread that started first)."""
+    with _lock:
+        future = _ahead_of_use.get((str(cache_root()), *key))
+    if future is not None:
+        future.result()
