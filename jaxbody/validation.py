@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from . import runtime_check
 from ._util import check_shape, is_concrete
 from .joints import HINGE, JOINT_KINDS, SLIDE
 
@@ -34,6 +35,7 @@ __all__ = [
     "validate_at_boundary",
     "check_batch_members",
     "raise_if_any",
+    "callback_check",
     "zero_quaternions",
     "check_quaternions",
 ]
@@ -137,10 +139,18 @@ def validate_parameters(model, rtol: float = 1e-9) -> None:
     which rounding to float32 crosses (0.1 + 0.2 < 0.3 there).
 
     Raises:
-        ValueError: naming the field and its body or joint.
+        ValueError: naming the field and its body or joint; or a field that is a traced value
+            (called inside ``jax.jit``, ``vmap`` or ``grad``).
     """
     tree, joints = model.tree, model.joints
     bn = tree.names
+    for f, _ in _fields(model):
+        if isinstance(getattr(model, f), jax.core.Tracer):
+            raise ValueError(
+                f"validate_parameters: model field {f} is a traced value (inside jax.jit, vmap or grad): these "
+                "checks read concrete values; validate the model outside the traced function (inside it, "
+                "jaxbody.check_inputs checks parameters as the program runs)"
+            )
     dtype = np.asarray(model.body_inertia).dtype
     if np.issubdtype(dtype, np.floating):
         rtol = max(rtol, 8 * float(np.finfo(dtype).eps))
@@ -245,16 +255,39 @@ def check_batch_members(inputs: dict, prefix: str = "") -> None:
 
 def raise_if_any(x, checks):
     """``x``, unchanged, after the traced ``checks`` ``[(bad, message)]``: when one fails the
-    program raises a ``ValueError`` with that check's message and, under ``vmap``, the first
-    batch member that failed it (``q0 contains NaN or inf (batch member 1 of 3)``).
+    program stops with that check's message and, under ``vmap``, the first batch member that
+    failed it (``q0 contains NaN or inf (batch member 1 of 3)``), on the error's first line.
 
-    Like the failure report of a solve, the check is a ``lax.cond`` on "any member failed" whose
-    failing branch calls back to the host and raises there (inside ``jit`` JAX re-raises it as its
-    runtime error, with this text after its own first line). Tangents pass through unchanged."""
+    On the CPU the check is :func:`jaxbody.runtime_check.check`, an XLA foreign-function call
+    that fails the program with ``INVALID_ARGUMENT: <message>`` (eagerly a ``ValueError``,
+    under ``jit`` JAX's runtime error). Elsewhere, or where its library cannot be built (no C++
+    compiler), the check is a host callback (:func:`callback_check`). Tangents pass through
+    unchanged."""
     if not checks:
         return x
     flags = jnp.stack([jnp.asarray(b) for b, _ in checks], axis=-1)
-    messages = tuple(m for _, m in checks)
+    messages = tuple(" ".join(m.splitlines()) for _, m in checks)
+
+    @jax.custom_jvp
+    def checked(x, flags):
+        if runtime_check.target() is None:
+            return callback_check(x, flags, messages)
+        # the platform the program is compiled for picks the check (the FFI target is the CPU's)
+        return lax.platform_dependent(x, flags, cpu=lambda x, f: runtime_check.check(x, f, messages),
+                                      default=lambda x, f: callback_check(x, f, messages))
+
+    @checked.defjvp
+    def _(primals, tangents):
+        return checked(*primals), tangents[0]
+
+    return checked(x, flags)
+
+
+def callback_check(x, flags, messages: tuple[str, ...]):
+    """The check of :func:`raise_if_any` through a host callback: a ``lax.cond`` on "any member
+    failed" whose failing branch calls back to the host and raises a ``ValueError`` there (inside
+    ``jit`` JAX re-raises it as its runtime error, ``INTERNAL: CpuCallback error``, with this
+    text further down). Serves where the foreign-function check cannot."""
 
     def report(flags, x):
         f = np.asarray(flags)
@@ -264,20 +297,11 @@ def raise_if_any(x, checks):
         member = f" (batch member {i} of {flat.shape[0]})" if f.ndim > 1 else ""
         raise ValueError(messages[j] + member)
 
-    @jax.custom_jvp
-    def checked(x, flags):
-        def fail():
-            return jax.pure_callback(report, jax.ShapeDtypeStruct(x.shape, x.dtype), flags, x,
-                                     vmap_method="broadcast_all")
+    def fail():
+        return jax.pure_callback(report, jax.ShapeDtypeStruct(x.shape, x.dtype), flags, x, vmap_method="broadcast_all")
 
-        # one predicate for a whole vmapped batch: the failing branch runs only when some member failed
-        return lax.cond(eqx.internal.unvmap_any(jnp.any(flags)), fail, lambda: x)
-
-    @checked.defjvp
-    def _(primals, tangents):
-        return checked(*primals), tangents[0]
-
-    return checked(x, flags)
+    # one predicate for a whole vmapped batch: the failing branch runs only when some member failed
+    return lax.cond(eqx.internal.unvmap_any(jnp.any(flags)), fail, lambda: x)
 
 
 def zero_axes(model) -> list[int]:
