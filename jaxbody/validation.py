@@ -4,7 +4,7 @@ Errors come in three layers (one rule each):
 
 1. **Before tracing** (``ValueError``): shapes and static misuse, raised by the public
    functions while they are traced (:func:`check_inputs` and the builders).
-2. **At the API boundary, once** (``eqx.error_if``): values — a NaN/inf state, drive or
+2. **At the API boundary, once** (:func:`raise_if`): values — a NaN/inf state, drive or
    parameter, a negative mass or damping set after building (e.g. through ``eqx.tree_at``).
    :func:`check_inputs` does these; the convenience functions (``jb.mass_matrix(model, q)``
    ...) call it, ``jb.simulate`` calls it once on the initial state. Every message names the
@@ -35,6 +35,7 @@ __all__ = [
     "validate_at_boundary",
     "check_batch_members",
     "raise_if_any",
+    "raise_if",
     "callback_check",
     "zero_quaternions",
     "check_quaternions",
@@ -254,19 +255,29 @@ def check_batch_members(inputs: dict, prefix: str = "") -> None:
 
 
 def raise_if_any(x, checks):
-    """``x``, unchanged, after the traced ``checks`` ``[(bad, message)]``: when one fails the
-    program stops with that check's message and, under ``vmap``, the first batch member that
-    failed it (``q0 contains NaN or inf (batch member 1 of 3)``), on the error's first line.
-
-    On the CPU the check is :func:`jaxbody.runtime_check.check`, an XLA foreign-function call
-    that fails the program with ``INVALID_ARGUMENT: <message>`` (eagerly a ``ValueError``,
-    under ``jit`` JAX's runtime error). Elsewhere, or where its library cannot be built (no C++
-    compiler), the check is a host callback (:func:`callback_check`). Tangents pass through
-    unchanged."""
+    """``x``, unchanged, after the traced ``checks`` ``[(bad, message)]`` (each ``bad`` a boolean
+    scalar): :func:`raise_if` of their flags and messages."""
     if not checks:
         return x
-    flags = jnp.stack([jnp.asarray(b) for b, _ in checks], axis=-1)
-    messages = tuple(" ".join(m.splitlines()) for _, m in checks)
+    return raise_if(x, jnp.stack([jnp.asarray(b) for b, _ in checks], axis=-1), [m for _, m in checks])
+
+
+def raise_if(x, flags, messages):
+    """``x``, unchanged, after the traced ``flags`` ``(n,)`` (``True``: check ``i`` failed, whose
+    message is ``messages[i]``): when one fails the program stops with that check's message and,
+    under ``vmap``, the first batch member that failed it (``q0 contains NaN or inf (batch
+    member 1 of 3)``), on the error's first line.
+
+    On the CPU the check is :func:`jaxbody.runtime_check.check`, an XLA foreign-function call
+    that fails the program with ``INVALID_ARGUMENT: <message>`` (JAX's runtime error, or a
+    ``ValueError`` from a compiled program's fast path). Elsewhere, or where its library cannot be
+    built (no C++ compiler), the check is a host callback (:func:`callback_check`). Tangents pass
+    through unchanged. The check guards the values computed from ``x``: use the returned array."""
+    messages = tuple(" ".join(m.splitlines()) for m in messages)
+    if jnp.shape(flags) != (len(messages),):
+        raise ValueError(f"raise_if: flags have shape {jnp.shape(flags)}, expected ({len(messages)},)")
+    if not messages:
+        return x
 
     @jax.custom_jvp
     def checked(x, flags):
@@ -280,7 +291,7 @@ def raise_if_any(x, checks):
     def _(primals, tangents):
         return checked(*primals), tangents[0]
 
-    return checked(x, flags)
+    return checked(x, jnp.asarray(flags, bool))
 
 
 def callback_check(x, flags, messages: tuple[str, ...]):
@@ -417,8 +428,8 @@ def _value_flags(system, given: dict):
 def check_inputs(system, *, q=None, v=None, tau=None, a=None, external=None) -> tuple:
     """Validate a system's parameters and the given inputs once, at the API boundary.
 
-    Shapes are checked while tracing (``ValueError``); values inside the program
-    (``eqx.error_if``): every parameter finite, masses (and damping, armature, stiffness)
+    Shapes are checked while tracing (``ValueError``); values inside the program (the run-time
+    check of :func:`raise_if`): every parameter finite, masses (and damping, armature, stiffness)
     non-negative, every given input finite. Call it once per public call or per simulation —
     never inside a vector field, where one bad member would stop a whole ``vmap`` batch.
 
@@ -440,9 +451,10 @@ def check_inputs(system, *, q=None, v=None, tau=None, a=None, external=None) -> 
         ValueError: an input of the wrong shape (before tracing), naming it; called eagerly
             (concrete values), also a NaN/inf input (``"tau contains NaN or inf"``) or an
             invalid parameter (``"body 1 ('b'): body_mass is negative"``).
-        equinox.EquinoxRuntimeError: under ``jit``, the same value errors at run time
-            (``eqx.filter_jit`` shows the message in the exception; ``jax.jit`` wraps it in a
-            ``JaxRuntimeError``).
+        jax.errors.JaxRuntimeError: under ``jit``, the same value errors at run time, the
+            message on the first line after the status (``INVALID_ARGUMENT: tau contains NaN
+            or inf``, under ``vmap`` with ``(batch member 2 of 3)``); a compiled program called
+            again may raise it as a ``ValueError`` with the same text.
     """
     where = "planar system" if _is_planar(system) else ""
     dtype = system.body_mass.dtype
@@ -490,7 +502,16 @@ def check_inputs(system, *, q=None, v=None, tau=None, a=None, external=None) -> 
         check_batch_members(given)
     flags, msgs = _parameter_check(system)
     bad_inputs = _nonfinite_inputs(given)
-    system = eqx.branched_error_if(system, jnp.any(flags), jnp.argmax(flags), msgs)
-    # through a host callback, so that under vmap the message names the batch member at fault
-    out = [raise_if_any(x, [(bad_inputs[name], f"{name} contains NaN or inf")]) for name, x in given.items()]
+    if not given:
+        system = eqx.tree_at(lambda s: s.body_mass, system, raise_if(system.body_mass, flags, msgs))
+        return (system,)
+    # the parameters' checks travel with the first input, which every public function reads
+    first = next(iter(given))
+    out = []
+    for name, x in given.items():
+        own, message = bad_inputs[name][None], f"{name} contains NaN or inf"
+        if name == first:
+            out.append(raise_if(x, jnp.concatenate([flags, own]), [*msgs, message]))
+        else:
+            out.append(raise_if(x, own, [message]))
     return (system, *out)

@@ -41,19 +41,19 @@ def test_a_failed_check_names_the_input_and_the_member_on_the_first_line(jitted)
     x = jnp.array([0.5, 1.5])
     np.testing.assert_array_equal(np.asarray(jitted(x)), [1.0, 3.0])  # passed unchanged
     with pytest.raises(FAILED) as info:
-        jitted(jnp.array([0.5, jnp.nan]))
+        jax.block_until_ready(jitted(jnp.array([0.5, jnp.nan])))
     assert first_line(info.value) == "INVALID_ARGUMENT: x contains NaN or inf"
     with pytest.raises(FAILED) as info:
-        jitted(jnp.array([0.5, -1.0]))
+        jax.block_until_ready(jitted(jnp.array([0.5, -1.0])))
     assert first_line(info.value) == "INVALID_ARGUMENT: x is negative"
     # jax.vmap without jit, and nested: members counted row-major over the batch axes
     batch = jnp.ones((3, 2)).at[1, 0].set(-1.0).at[2, 1].set(jnp.nan)
     with pytest.raises(FAILED) as info:
-        jax.vmap(checked)(batch)
+        jax.block_until_ready(jax.vmap(checked)(batch))
     assert first_line(info.value) == "INVALID_ARGUMENT: x is negative (batch member 1 of 3)"
     nested = jnp.ones((2, 3, 2)).at[1, 1, 0].set(jnp.inf)
     with pytest.raises(FAILED) as info:
-        jax.jit(jax.vmap(jax.vmap(checked)))(nested)
+        jax.block_until_ready(jax.jit(jax.vmap(jax.vmap(checked)))(nested))
     assert first_line(info.value) == "INVALID_ARGUMENT: x contains NaN or inf (batch member 4 of 6)"
     np.testing.assert_array_equal(np.asarray(jax.vmap(jax.vmap(checked))(jnp.ones((2, 3, 2)))), np.ones((2, 3, 2)))
 
@@ -73,7 +73,7 @@ def test_tangents_and_cotangents_pass_through_the_check(jitted):
     np.testing.assert_array_equal(np.asarray(tangent), [2.0, -4.0])
     # a gradient of a program whose value needs the checked array still checks it
     with pytest.raises(FAILED, match="^INVALID_ARGUMENT: x contains NaN or inf"):
-        jax.jit(jax.grad(f))(jnp.array([0.5, jnp.nan]))
+        jax.block_until_ready(jax.jit(jax.grad(f))(jnp.array([0.5, jnp.nan])))
 
 
 # the program of the persistent-cache test, compiled by this process and by a fresh one
@@ -85,7 +85,7 @@ x = jnp.array([1.0, jnp.nan])
 
 def failure(f):
     try:
-        f(x)
+        jax.block_until_ready(f(x))
     except Exception as err:
         return str(err)
     return ""

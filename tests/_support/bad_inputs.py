@@ -592,7 +592,7 @@ def classify(case: Case) -> tuple[str, str]:
     import traceback
 
     try:
-        case.call()
+        jax.block_until_ready(case.call())  # an error of a running program is raised when its result is read
     except Exception as err:  # noqa: BLE001 (every failure is classified)
         text = str(err)
         if re.search(case.pattern, first_line(err)):
