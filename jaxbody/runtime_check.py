@@ -34,6 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._types import Array, ArrayLike, Bool
 from .cxx import build_library, compiler
 
 __all__ = ["FLAGS", "TARGET", "check", "target", "unavailable_reason"]
@@ -86,7 +87,7 @@ _warned: set = set()
 _lock = threading.Lock()
 
 
-def check(x, flags, messages: tuple[str, ...]):
+def check(x: Array, flags: Bool[ArrayLike, " n"], messages: tuple[str, ...]) -> Array:
     """``x``, unchanged, once the program has checked ``flags``: booleans ``(n,)``, ``True`` where
     check ``i`` failed, whose message is ``messages[i]`` (one line each). A failed check stops
     the program with ``INVALID_ARGUMENT: <message>``, and under ``vmap`` with

@@ -18,6 +18,8 @@ Build-time checks on concrete values (:func:`validate_parameters`, :func:`valida
 use the same messages as the traced checks of layer 2, plus the offending value.
 """
 
+from collections.abc import Sequence
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -25,6 +27,7 @@ import numpy as np
 from jax import lax
 
 from . import runtime_check
+from ._types import Array, ArrayLike, Bool
 from ._util import check_shape, is_concrete
 from .joints import HINGE, JOINT_KINDS, SLIDE
 
@@ -254,7 +257,7 @@ def check_batch_members(inputs: dict, prefix: str = "") -> None:
             raise ValueError(f"{prefix}{name} contains NaN or inf (batch member {i} of {members.shape[0]})")
 
 
-def raise_if_any(x, checks):
+def raise_if_any(x: Array, checks: Sequence[tuple[ArrayLike, str]]) -> Array:
     """``x``, unchanged, after the traced ``checks`` ``[(bad, message)]`` (each ``bad`` a boolean
     scalar): :func:`raise_if` of their flags and messages."""
     if not checks:
@@ -262,7 +265,7 @@ def raise_if_any(x, checks):
     return raise_if(x, jnp.stack([jnp.asarray(b) for b, _ in checks], axis=-1), [m for _, m in checks])
 
 
-def raise_if(x, flags, messages):
+def raise_if(x: Array, flags: Bool[ArrayLike, " n"], messages: Sequence[str]) -> Array:
     """``x``, unchanged, after the traced ``flags`` ``(n,)`` (``True``: check ``i`` failed, whose
     message is ``messages[i]``): when one fails the program stops with that check's message and,
     under ``vmap``, the first batch member that failed it (``q0 contains NaN or inf (batch
@@ -294,7 +297,7 @@ def raise_if(x, flags, messages):
     return checked(x, jnp.asarray(flags, bool))
 
 
-def callback_check(x, flags, messages: tuple[str, ...]):
+def callback_check(x: Array, flags: Bool[Array, "*batch n"], messages: tuple[str, ...]) -> Array:
     """The check of :func:`raise_if_any` through a host callback: a ``lax.cond`` on "any member
     failed" whose failing branch calls back to the host and raises a ``ValueError`` there (inside
     ``jit`` JAX re-raises it as its runtime error, ``INTERNAL: CpuCallback error``, with this

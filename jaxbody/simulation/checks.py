@@ -3,8 +3,8 @@
 With concrete inputs a check raises a ``ValueError`` naming the input (or the constraint rows)
 at fault. Under ``jit``/``vmap`` the same check is traced: :func:`jaxbody.simulate` turns it
 into the run-time check of :func:`jaxbody.validation.raise_if_any` (``throw=True``) or the
-result code ``RESULTS.invalid_input`` of that member alone (``throw=False``). Nothing is checked inside the vector field, where one bad member
-would stop a whole batch.
+result code ``RESULTS.invalid_input`` of that member alone (``throw=False``). Nothing is checked
+inside the vector field, where one bad member would stop a whole batch.
 
 :func:`jaxbody.check_inputs` checks a model's own fields; a scene is more than its model (its
 effects carry parameters of their own, a protocol system has any fields), so the finiteness
