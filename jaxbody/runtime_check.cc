@@ -9,6 +9,7 @@
 // Call: arguments (flags, x), result x (aliased to the argument), string attribute "messages".
 // flags: booleans (..., n), one per check, the leading axes a vmap batch; messages: n lines.
 #include <stdio.h>
+#include <stdlib.h>
 #include <string.h>
 #include "xla/ffi/api/c_api.h"
 
@@ -65,12 +66,17 @@ extern "C" XLA_FFI_Error* jaxbody_check(XLA_FFI_CallFrame* frame) {
       if (!m) m = end;
       const char* stop = (const char*)memchr(m, '\n', end - m);
       const int len = (int)((stop ? stop : end) - m);
-      char text[2048];
+      // the message and its member, whatever their length (XLA copies the text into its status)
+      const size_t size = (size_t)len + 80;
+      char* text = (char*)malloc(size);
+      if (!text) return make_error(api, XLA_FFI_Error_Code_INVALID_ARGUMENT, "jaxbody: an input check failed");
       if (flags->rank > 1)
-        snprintf(text, sizeof text, "%.*s (batch member %lld of %lld)", len, m, (long long)i, (long long)members);
+        snprintf(text, size, "%.*s (batch member %lld of %lld)", len, m, (long long)i, (long long)members);
       else
-        snprintf(text, sizeof text, "%.*s", len, m);
-      return make_error(api, XLA_FFI_Error_Code_INVALID_ARGUMENT, text);
+        snprintf(text, size, "%.*s", len, m);
+      XLA_FFI_Error* err = make_error(api, XLA_FFI_Error_Code_INVALID_ARGUMENT, text);
+      free(text);
+      return err;
     }
   // the result is aliased to x; should XLA give it a buffer of its own, copy
   if (out->data != x->data) {
