@@ -39,6 +39,7 @@ __all__ = [
     "check_batch_members",
     "raise_if_any",
     "raise_if",
+    "negative_parameters",
     "callback_check",
     "zero_quaternions",
     "check_quaternions",
@@ -404,11 +405,20 @@ def validate_planar(system) -> None:
 def _parameter_check(system):
     """``(flags, messages)``: one flag per (parameter, owner) that is NaN/inf or negative."""
     flags, msgs = [], []
-    kinds = dict(_fields(system))
     for field, kind in _fields(system):
         a = _entries(jnp.asarray(getattr(system, field)), kind)
         flags.append(~jnp.all(jnp.isfinite(a), axis=1))
         msgs += [_not_finite(system, field, kind, i) for i in range(a.shape[0])]
+    negative, negative_msgs = negative_parameters(system)
+    return jnp.concatenate([*flags, negative]), msgs + negative_msgs
+
+
+def negative_parameters(system) -> tuple[Bool[Array, " n"], list[str]]:
+    """``(flags, messages)`` of the parameters that must not be negative (masses, and damping,
+    armature and stiffness of a model): one flag per (parameter, owner), ``True`` where negative,
+    its message naming the body or joint (``"body 1 ('b'): body_mass is negative"``)."""
+    flags, msgs = [], []
+    kinds = dict(_fields(system))
     for field in _nonnegative(system):
         a = _entries(jnp.asarray(getattr(system, field)), kinds[field])
         flags.append(jnp.any(a < 0, axis=1))

@@ -25,6 +25,7 @@ from ..scene import Scene
 from ..validation import (
     check_batch_members,
     check_quaternions,
+    negative_parameters,
     quaternion_slices,
     raise_if_any,
     validate_at_boundary,
@@ -66,8 +67,8 @@ def value_checks(system, q0, v0):
     # a negative mass gives an indefinite mass matrix: the solve would run and be meaningless;
     # negative stiffness, damping or armature feed energy in without bound
     if isinstance(model, Model):
-        for field in ("body_mass", "joint_stiffness", "dof_damping", "dof_armature"):
-            checks.append((jnp.any(getattr(model, field) < 0), f"simulate: parameter {field} is negative"))
+        flags, messages = negative_parameters(model)
+        checks += [(flags[i], f"simulate: {m}") for i, m in enumerate(messages)]
         for j, a in quaternion_slices(model):
             checks.append((
                 jnp.sum(q0[a:a + 4] ** 2) == 0,

@@ -182,7 +182,11 @@ def nan_law_solve():
 @functools.lru_cache
 def _jitted_solve():
     model = pendulum()  # built outside the trace: the cases are about the solve's inputs
-    return jax.jit(jax.vmap(lambda q0, ts: law_solve_at(q0, ts, model).q, in_axes=(0, None)))
+
+    def solve(q0, ts, mass):
+        return law_solve_at(q0, ts, eqx.tree_at(lambda m: m.body_mass, model, mass)).q
+
+    return jax.jit(jax.vmap(solve, in_axes=(0, None, 0)))
 
 
 def law_solve_at(q0, ts, model=None):
@@ -190,9 +194,10 @@ def law_solve_at(q0, ts, model=None):
     return jb.simulate(model, q0, z(1), 0.1, tau=Law(jnp.array(0.0), jnp.array(-10.0)), max_steps=64, saveat=ts)
 
 
-def jit_solve(q0=((0.3,), (0.2,)), ts=(0.05, 0.1)):
-    """:func:`law_solve_at` of a batch of two under ``jax.jit`` (one compilation for every case)."""
-    return _jitted_solve()(jnp.asarray(q0, float), jnp.asarray(ts, float))
+def jit_solve(q0=((0.3,), (0.2,)), ts=(0.05, 0.1), mass=((1.0,), (1.0,))):
+    """:func:`law_solve_at` of a batch of two pendulums (initial angles ``q0``, masses ``mass``)
+    under ``jax.jit`` (one compilation for every case)."""
+    return _jitted_solve()(jnp.asarray(q0, float), jnp.asarray(ts, float), jnp.asarray(mass, float))
 
 
 def jit_mass_matrix(model):
@@ -473,6 +478,8 @@ def _traced_cases():
              r"^INVALID_ARGUMENT: simulate: saveat: a time lies outside \[t0, t1\]"),
         Case("jit simulate saveat decreasing", lambda: jit_solve(ts=(0.08, 0.02)),
              r"^INVALID_ARGUMENT: simulate: saveat times must be increasing"),
+        Case("jit vmap simulate negative mass in member 1", lambda: jit_solve(mass=((1.0,), (-1.0,))),
+             r"^INVALID_ARGUMENT: simulate: body 0 \('arm'\): body_mass is negative \(batch member 1 of 2\)$"),
         Case("jit vmap mass_matrix q NaN in member 2", lambda: jax.jit(jax.vmap(lambda q: jb.mass_matrix(p(), q)))(
              jnp.array([[0.1], [0.2], [jnp.inf]])), r"^INVALID_ARGUMENT: q contains NaN or inf \(batch member 2 of 3\)$"),
         Case("jit builder given a traced mass", lambda: jax.jit(lambda m: builder(mass=m))(1.0),
