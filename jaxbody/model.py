@@ -25,6 +25,7 @@ wraps a model into a scene itself).
 from collections.abc import Sequence
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -116,8 +117,22 @@ class Model(eqx.Module):
         )
 
 
+def _concrete(value, what):
+    """``value`` unless it holds a traced value (the builder called inside ``jax.jit``, ``vmap``
+    or ``grad`` with a traced argument): a ``ValueError`` naming ``what`` then, where NumPy would
+    raise JAX's TracerArrayConversionError."""
+    if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(value)):
+        raise ValueError(
+            f"{what} is a traced value (the model is being built inside jax.jit, vmap or grad from a traced "
+            "argument): a model's structure and its checks need concrete numbers; build the model outside the "
+            "traced function and pass the values to trace into it with eqx.tree_at, e.g. "
+            "eqx.tree_at(lambda m: m.body_mass, model, masses)"
+        )
+    return value
+
+
 def _check_finite(value, what):
-    a = np.asarray(value, dtype=np.float64)
+    a = np.asarray(_concrete(value, what), dtype=np.float64)
     if not np.all(np.isfinite(a)):
         raise ValueError(f"{what} is not finite (NaN or inf): {a.tolist()}")
     return a
@@ -170,7 +185,7 @@ class ModelBuilder:
             pidx = int(parent)
             if not -1 <= pidx < len(names):
                 raise ValueError(f"body {name!r}: unknown parent index {pidx}")
-        I = np.asarray(inertia, dtype=np.float64)
+        I = np.asarray(_concrete(inertia, f"body {name!r} inertia"), dtype=np.float64)
         if I.shape == (3,):
             I = np.diag(I)
         elif I.shape == (6,):
@@ -196,8 +211,15 @@ class ModelBuilder:
         )
         return len(self._bodies) - 1
 
+    # called inside a traced function (a jit that builds its model from numbers), the model is a
+    # constant of the program: its arrays are made, and checked, now rather than staged into it
+    @jax.ensure_compile_time_eval()
     def build(self, dtype=None, *, traversal: str | None = None) -> Model:
         """Validate and return the :class:`Model` (raises ``ValueError`` naming the culprit).
+
+        Inside ``jax.jit`` (or ``vmap``, ``grad``) the builder gives the same model, a constant of
+        the traced program; its inputs must be numbers, not traced values (a ``ValueError`` names
+        the field; trace parameters by setting them on the built model with ``eqx.tree_at``).
 
         Args:
             dtype: floating dtype of the parameters (default: JAX's default float).
@@ -215,19 +237,20 @@ class ModelBuilder:
                 jt.append(j.kind)
                 jb_.append(k)
                 jnames.append(j.name or f"{b['name']}_{JOINT_KIND_NAMES[j.kind]}{i}")
-                jpos.append(_check_finite(j.pos, f"joint of body {b['name']!r} pos"))
-                ax = _check_finite(j.axis, f"joint of body {b['name']!r} axis")
+                jpos.append(_check_finite(j.pos, f"joint {jnames[-1]!r} of body {b['name']!r} pos"))
+                ax = _check_finite(j.axis, f"joint {jnames[-1]!r} of body {b['name']!r} axis")
                 nrm = np.linalg.norm(ax)
                 if j.kind in (HINGE, SLIDE) and nrm < 1e-12:
                     raise ValueError(f"joint {jnames[-1]!r} of body {b['name']!r}: axis is zero")
                 jaxis.append(ax / nrm if nrm > 0 else ax)
-                jstiff.append(float(j.stiffness))
+                scalar = lambda field: float(_concrete(getattr(j, field), f"joint {jnames[-1]!r} {field}"))
+                jstiff.append(scalar("stiffness"))
                 kind = JOINT_KINDS[j.kind]
-                arm += [float(j.armature)] * kind.nv
-                damp += [float(j.damping)] * kind.nv
+                arm += [scalar("armature")] * kind.nv
+                damp += [scalar("damping")] * kind.nv
                 if kind.quaternion is None:
-                    q0.append(float(j.ref))
-                    qs.append(float(j.springref))
+                    q0.append(scalar("ref"))
+                    qs.append(scalar("springref"))
                 elif kind.code != FREE:
                     q0 += [1.0, 0.0, 0.0, 0.0]
                     qs += [1.0, 0.0, 0.0, 0.0]

@@ -4,7 +4,7 @@ Errors come in three layers (one rule each):
 
 1. **Before tracing** (``ValueError``): shapes and static misuse, raised by the public
    functions while they are traced (:func:`check_inputs` and the builders).
-2. **At the API boundary, once** (``eqx.error_if``): values — a NaN/inf state, drive or
+2. **At the API boundary, once** (:func:`raise_if`): values — a NaN/inf state, drive or
    parameter, a negative mass or damping set after building (e.g. through ``eqx.tree_at``).
    :func:`check_inputs` does these; the convenience functions (``jb.mass_matrix(model, q)``
    ...) call it, ``jb.simulate`` calls it once on the initial state. Every message names the
@@ -18,12 +18,16 @@ Build-time checks on concrete values (:func:`validate_parameters`, :func:`valida
 use the same messages as the traced checks of layer 2, plus the offending value.
 """
 
+from collections.abc import Sequence
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from . import runtime_check
+from ._types import Array, ArrayLike, Bool
 from ._util import check_shape, is_concrete
 from .joints import HINGE, JOINT_KINDS, SLIDE
 
@@ -34,6 +38,9 @@ __all__ = [
     "validate_at_boundary",
     "check_batch_members",
     "raise_if_any",
+    "raise_if",
+    "negative_parameters",
+    "callback_check",
     "zero_quaternions",
     "check_quaternions",
 ]
@@ -137,10 +144,18 @@ def validate_parameters(model, rtol: float = 1e-9) -> None:
     which rounding to float32 crosses (0.1 + 0.2 < 0.3 there).
 
     Raises:
-        ValueError: naming the field and its body or joint.
+        ValueError: naming the field and its body or joint; or a field that is a traced value
+            (called inside ``jax.jit``, ``vmap`` or ``grad``).
     """
     tree, joints = model.tree, model.joints
     bn = tree.names
+    for f, _ in _fields(model):
+        if isinstance(getattr(model, f), jax.core.Tracer):
+            raise ValueError(
+                f"validate_parameters: model field {f} is a traced value (inside jax.jit, vmap or grad): these "
+                "checks read concrete values; validate the model outside the traced function (inside it, "
+                "jaxbody.check_inputs checks parameters as the program runs)"
+            )
     dtype = np.asarray(model.body_inertia).dtype
     if np.issubdtype(dtype, np.floating):
         rtol = max(rtol, 8 * float(np.finfo(dtype).eps))
@@ -243,18 +258,51 @@ def check_batch_members(inputs: dict, prefix: str = "") -> None:
             raise ValueError(f"{prefix}{name} contains NaN or inf (batch member {i} of {members.shape[0]})")
 
 
-def raise_if_any(x, checks):
-    """``x``, unchanged, after the traced ``checks`` ``[(bad, message)]``: when one fails the
-    program raises a ``ValueError`` with that check's message and, under ``vmap``, the first
-    batch member that failed it (``q0 contains NaN or inf (batch member 1 of 3)``).
-
-    Like the failure report of a solve, the check is a ``lax.cond`` on "any member failed" whose
-    failing branch calls back to the host and raises there (inside ``jit`` JAX re-raises it as its
-    runtime error, with this text after its own first line). Tangents pass through unchanged."""
+def raise_if_any(x: Array, checks: Sequence[tuple[ArrayLike, str]]) -> Array:
+    """``x``, unchanged, after the traced ``checks`` ``[(bad, message)]`` (each ``bad`` a boolean
+    scalar): :func:`raise_if` of their flags and messages."""
     if not checks:
         return x
-    flags = jnp.stack([jnp.asarray(b) for b, _ in checks], axis=-1)
-    messages = tuple(m for _, m in checks)
+    return raise_if(x, jnp.stack([jnp.asarray(b) for b, _ in checks], axis=-1), [m for _, m in checks])
+
+
+def raise_if(x: Array, flags: Bool[ArrayLike, " n"], messages: Sequence[str]) -> Array:
+    """``x``, unchanged, after the traced ``flags`` ``(n,)`` (``True``: check ``i`` failed, whose
+    message is ``messages[i]``): when one fails the program stops with that check's message and,
+    under ``vmap``, the first batch member that failed it (``q0 contains NaN or inf (batch
+    member 1 of 3)``), on the error's first line.
+
+    On the CPU the check is :func:`jaxbody.runtime_check.check`, an XLA foreign-function call
+    that fails the program with ``INVALID_ARGUMENT: <message>`` (JAX's runtime error, or a
+    ``ValueError`` from a compiled program's fast path). Elsewhere, or where its library cannot be
+    built (no C++ compiler), the check is a host callback (:func:`callback_check`). Tangents pass
+    through unchanged. The check guards the values computed from ``x``: use the returned array."""
+    messages = tuple(" ".join(m.splitlines()) for m in messages)
+    if jnp.shape(flags) != (len(messages),):
+        raise ValueError(f"raise_if: flags have shape {jnp.shape(flags)}, expected ({len(messages)},)")
+    if not messages:
+        return x
+
+    @jax.custom_jvp
+    def checked(x, flags):
+        if runtime_check.target() is None:
+            return callback_check(x, flags, messages)
+        # the platform the program is compiled for picks the check (the FFI target is the CPU's)
+        return lax.platform_dependent(x, flags, cpu=lambda x, f: runtime_check.check(x, f, messages),
+                                      default=lambda x, f: callback_check(x, f, messages))
+
+    @checked.defjvp
+    def _(primals, tangents):
+        return checked(*primals), tangents[0]
+
+    return checked(x, jnp.asarray(flags, bool))
+
+
+def callback_check(x: Array, flags: Bool[Array, "*batch n"], messages: tuple[str, ...]) -> Array:
+    """The check of :func:`raise_if_any` through a host callback: a ``lax.cond`` on "any member
+    failed" whose failing branch calls back to the host and raises a ``ValueError`` there (inside
+    ``jit`` JAX re-raises it as its runtime error, ``INTERNAL: CpuCallback error``, with this
+    text further down). Serves where the foreign-function check cannot."""
 
     def report(flags, x):
         f = np.asarray(flags)
@@ -264,20 +312,11 @@ def raise_if_any(x, checks):
         member = f" (batch member {i} of {flat.shape[0]})" if f.ndim > 1 else ""
         raise ValueError(messages[j] + member)
 
-    @jax.custom_jvp
-    def checked(x, flags):
-        def fail():
-            return jax.pure_callback(report, jax.ShapeDtypeStruct(x.shape, x.dtype), flags, x,
-                                     vmap_method="broadcast_all")
+    def fail():
+        return jax.pure_callback(report, jax.ShapeDtypeStruct(x.shape, x.dtype), flags, x, vmap_method="broadcast_all")
 
-        # one predicate for a whole vmapped batch: the failing branch runs only when some member failed
-        return lax.cond(eqx.internal.unvmap_any(jnp.any(flags)), fail, lambda: x)
-
-    @checked.defjvp
-    def _(primals, tangents):
-        return checked(*primals), tangents[0]
-
-    return checked(x, flags)
+    # one predicate for a whole vmapped batch: the failing branch runs only when some member failed
+    return lax.cond(eqx.internal.unvmap_any(jnp.any(flags)), fail, lambda: x)
 
 
 def zero_axes(model) -> list[int]:
@@ -366,11 +405,20 @@ def validate_planar(system) -> None:
 def _parameter_check(system):
     """``(flags, messages)``: one flag per (parameter, owner) that is NaN/inf or negative."""
     flags, msgs = [], []
-    kinds = dict(_fields(system))
     for field, kind in _fields(system):
         a = _entries(jnp.asarray(getattr(system, field)), kind)
         flags.append(~jnp.all(jnp.isfinite(a), axis=1))
         msgs += [_not_finite(system, field, kind, i) for i in range(a.shape[0])]
+    negative, negative_msgs = negative_parameters(system)
+    return jnp.concatenate([*flags, negative]), msgs + negative_msgs
+
+
+def negative_parameters(system) -> tuple[Bool[Array, " n"], list[str]]:
+    """``(flags, messages)`` of the parameters that must not be negative (masses, and damping,
+    armature and stiffness of a model): one flag per (parameter, owner), ``True`` where negative,
+    its message naming the body or joint (``"body 1 ('b'): body_mass is negative"``)."""
+    flags, msgs = [], []
+    kinds = dict(_fields(system))
     for field in _nonnegative(system):
         a = _entries(jnp.asarray(getattr(system, field)), kinds[field])
         flags.append(jnp.any(a < 0, axis=1))
@@ -393,8 +441,8 @@ def _value_flags(system, given: dict):
 def check_inputs(system, *, q=None, v=None, tau=None, a=None, external=None) -> tuple:
     """Validate a system's parameters and the given inputs once, at the API boundary.
 
-    Shapes are checked while tracing (``ValueError``); values inside the program
-    (``eqx.error_if``): every parameter finite, masses (and damping, armature, stiffness)
+    Shapes are checked while tracing (``ValueError``); values inside the program (the run-time
+    check of :func:`raise_if`): every parameter finite, masses (and damping, armature, stiffness)
     non-negative, every given input finite. Call it once per public call or per simulation —
     never inside a vector field, where one bad member would stop a whole ``vmap`` batch.
 
@@ -416,9 +464,10 @@ def check_inputs(system, *, q=None, v=None, tau=None, a=None, external=None) -> 
         ValueError: an input of the wrong shape (before tracing), naming it; called eagerly
             (concrete values), also a NaN/inf input (``"tau contains NaN or inf"``) or an
             invalid parameter (``"body 1 ('b'): body_mass is negative"``).
-        equinox.EquinoxRuntimeError: under ``jit``, the same value errors at run time
-            (``eqx.filter_jit`` shows the message in the exception; ``jax.jit`` wraps it in a
-            ``JaxRuntimeError``).
+        jax.errors.JaxRuntimeError: under ``jit``, the same value errors at run time, the
+            message on the first line after the status (``INVALID_ARGUMENT: tau contains NaN
+            or inf``, under ``vmap`` with ``(batch member 2 of 3)``); a compiled program called
+            again may raise it as a ``ValueError`` with the same text.
     """
     where = "planar system" if _is_planar(system) else ""
     dtype = system.body_mass.dtype
@@ -466,7 +515,16 @@ def check_inputs(system, *, q=None, v=None, tau=None, a=None, external=None) -> 
         check_batch_members(given)
     flags, msgs = _parameter_check(system)
     bad_inputs = _nonfinite_inputs(given)
-    system = eqx.branched_error_if(system, jnp.any(flags), jnp.argmax(flags), msgs)
-    # through a host callback, so that under vmap the message names the batch member at fault
-    out = [raise_if_any(x, [(bad_inputs[name], f"{name} contains NaN or inf")]) for name, x in given.items()]
+    if not given:
+        system = eqx.tree_at(lambda s: s.body_mass, system, raise_if(system.body_mass, flags, msgs))
+        return (system,)
+    # the parameters' checks travel with the first input, which every public function reads
+    first = next(iter(given))
+    out = []
+    for name, x in given.items():
+        own, message = bad_inputs[name][None], f"{name} contains NaN or inf"
+        if name == first:
+            out.append(raise_if(x, jnp.concatenate([flags, own]), [*msgs, message]))
+        else:
+            out.append(raise_if(x, own, [message]))
     return (system, *out)

@@ -72,3 +72,24 @@ def test_builder_rejects_a_moving_body_without_inertia_as_mujoco_does():
     b.add_body("p", mass=1.0, com=(0, 0, -1), inertia=(0.0, 0.0, 0.0), joints=[jb.Hinge()])
     b.add_body("w", "p", mass=1.0, inertia=(0.1, 0.1, 0.1))
     b.build()
+
+
+def test_a_model_built_inside_jit_from_numbers_is_a_constant_of_the_program():
+    """The builder and the MJCF importer called inside ``jax.jit`` give the model built outside
+    (checked on concrete values); traced numbers are refused naming the field (the bad-input table)."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    mjcf = ('<mujoco><worldbody><body name="b"><joint name="j" type="hinge" axis="0 1 0"/>'
+            '<geom type="sphere" size=".1" pos="0 0 -.3" mass="1"/></body></worldbody></mujoco>')
+
+    def mass_matrices(q):
+        built = good_builder().build()
+        return jb.mass_matrix(built, q), jb.mass_matrix(jb.from_mjcf(mjcf), q)
+
+    q = jnp.array([0.3])
+    inside = jax.jit(mass_matrices)(q)
+    outside = (jb.mass_matrix(good_builder().build(), q), jb.mass_matrix(jb.from_mjcf(mjcf), q))
+    for a, b in zip(inside, outside):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-14)

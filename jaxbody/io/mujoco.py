@@ -172,6 +172,9 @@ def from_mujoco(mj_model, *, strict: bool = False, dtype=None) -> Model:
     return _from_mujoco(mj_model, strict, dtype, "from_mujoco")
 
 
+# called inside a traced function (a jit that imports its model), the model is a constant of the
+# program: its arrays are made, and checked, now rather than staged into it
+@jax.ensure_compile_time_eval()
 def _from_mujoco(mj_model, strict: bool, dtype, _caller: str, extra=()) -> Model:
     """:func:`from_mujoco`, with the public function's name (``_caller``) for messages."""
     dtype = _check_dtype(dtype, _caller)

@@ -2,9 +2,9 @@
 
 With concrete inputs a check raises a ``ValueError`` naming the input (or the constraint rows)
 at fault. Under ``jit``/``vmap`` the same check is traced: :func:`jaxbody.simulate` turns it
-into an ``eqx.error_if`` (``throw=True``) or the result code ``RESULTS.invalid_input`` of that
-member alone (``throw=False``). Nothing is checked inside the vector field, where one bad member
-would stop a whole batch.
+into the run-time check of :func:`jaxbody.validation.raise_if_any` (``throw=True``) or the
+result code ``RESULTS.invalid_input`` of that member alone (``throw=False``). Nothing is checked
+inside the vector field, where one bad member would stop a whole batch.
 
 :func:`jaxbody.check_inputs` checks a model's own fields; a scene is more than its model (its
 effects carry parameters of their own, a protocol system has any fields), so the finiteness
@@ -25,7 +25,9 @@ from ..scene import Scene
 from ..validation import (
     check_batch_members,
     check_quaternions,
+    negative_parameters,
     quaternion_slices,
+    raise_if_any,
     validate_at_boundary,
 )
 
@@ -54,7 +56,7 @@ def _param_leaves(system):
 
 def value_checks(system, q0, v0):
     """``[(bad, message)]``: boundary value checks (each ``bad`` a boolean scalar)."""
-    # flags, not errors: the caller decides between eqx.error_if and a per-member result code
+    # flags, not errors: the caller decides between a run-time check and a per-member result code
     checks = [
         (~jnp.all(jnp.isfinite(q0)), "simulate: q0 contains NaN or inf"),
         (~jnp.all(jnp.isfinite(v0)), "simulate: v0 contains NaN or inf"),
@@ -65,8 +67,8 @@ def value_checks(system, q0, v0):
     # a negative mass gives an indefinite mass matrix: the solve would run and be meaningless;
     # negative stiffness, damping or armature feed energy in without bound
     if isinstance(model, Model):
-        for field in ("body_mass", "joint_stiffness", "dof_damping", "dof_armature"):
-            checks.append((jnp.any(getattr(model, field) < 0), f"simulate: parameter {field} is negative"))
+        flags, messages = negative_parameters(model)
+        checks += [(flags[i], f"simulate: {m}") for i, m in enumerate(messages)]
         for j, a in quaternion_slices(model):
             checks.append((
                 jnp.sum(q0[a:a + 4] ** 2) == 0,
@@ -120,14 +122,14 @@ def batch_member_checks(system, q0, v0) -> None:
 
 def checked_save_times(saveat, t0, t1):
     """``saveat`` with its times checked against ``[t0, t1]`` and for increasing order: with
-    concrete times a ``ValueError`` naming the first time at fault; traced ones carry an
-    ``eqx.error_if`` with the same rule (a usage error, raised whatever ``throw`` says).
+    concrete times a ``ValueError`` naming the first time at fault; traced ones carry the run-time
+    check of :func:`jaxbody.validation.raise_if_any` with the same rule (a usage error, raised
+    whatever ``throw`` says; under ``vmap`` naming the batch member).
     (diffrax would otherwise stop with an internal check deep in its loop.)"""
     sub = saveat.subs
     if not isinstance(sub, diffrax.SubSaveAt) or sub.ts is None:
         return saveat
     ts = sub.ts
-    msg = "simulate: saveat times must be increasing and lie inside [t0, t1]"
     if is_concrete(ts, t0, t1):
         a, lo, hi = np.asarray(ts), float(np.asarray(t0)), float(np.asarray(t1))
         # a few ulps of slack: linspace(t0, t1) in float32 may round its ends outwards
@@ -145,20 +147,24 @@ def checked_save_times(saveat, t0, t1):
                 f"after {a[down[0]]:g}"
             )
         return saveat
-    bad = jnp.any(ts < t0) | jnp.any(ts > t1) | jnp.any(jnp.diff(ts) < 0)
-    ts = eqx.error_if(ts, bad, msg + " (a time lies outside [t0, t1] = the solve's interval, or they decrease)")
+    outside = jnp.any(ts < t0) | jnp.any(ts > t1) | ~jnp.all(jnp.isfinite(ts))
+    ts = raise_if_any(ts, [
+        (outside, "simulate: saveat: a time lies outside [t0, t1]; save times must lie inside the solve's interval"),
+        (jnp.any(jnp.diff(ts) < 0), "simulate: saveat times must be increasing; a time comes before the one it follows"),
+    ])
     return eqx.tree_at(lambda s: s.subs.ts, saveat, ts)
 
 
 def checked_step_sign(dt0, t0, t1):
     """``dt0`` checked for a step that runs from ``t0`` towards ``t1`` (``(t1 - t0) * dt0 ≥ 0``):
     concrete values were checked already (``t1`` after ``t0``, ``dt0`` positive); traced ones carry
-    an ``eqx.error_if`` here, outside the compiled solve (diffrax's own check of the same rule is
-    left out of it, see :func:`jaxbody.simulation.solve.integrate`)."""
+    the run-time check of :func:`jaxbody.validation.raise_if_any` here, outside the compiled solve
+    (diffrax's own check of the same rule is left out of it, see
+    :func:`jaxbody.simulation.solve.integrate`)."""
     if dt0 is None or is_concrete(dt0, t0, t1):
         return dt0
     msg = "simulate: t1 must not be before t0 (a solve with a step dt0 runs forward: (t1 - t0) * dt0 >= 0)"
-    return eqx.error_if(dt0, (t1 - t0) * dt0 < 0, msg)
+    return raise_if_any(dt0, [((t1 - t0) * dt0 < 0, msg)])
 
 
 def check_positive(name, value, integer=False):

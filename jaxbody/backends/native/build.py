@@ -1,29 +1,20 @@
-"""Building and loading the native kernel: the compiler, the on-disk cache, the XLA FFI target
-and the batched call of one compiled program."""
+"""Building and loading the native kernel: its XLA FFI target and the batched call of one compiled
+program (the compiler and the on-disk cache of the libraries: :mod:`jaxbody.cxx`)."""
 
 import concurrent.futures
-import contextlib
 import ctypes
 import functools
 import hashlib
 import os
-import platform
-import shutil
-import subprocess
-import tempfile
 import threading
 from pathlib import Path
-
-try:  # POSIX: builders of the same library in several processes take turns (build_library)
-    import fcntl
-except ImportError:  # pragma: no cover
-    fcntl = None
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ...compilation_cache import cache_root
+from ...cxx import COMPILER_FLAGS, OPTIMISATION_LEVELS, build_library, compiler, compiler_flags, cpu_signature  # noqa: F401  (re-exported)
 from ...model import Model
 from .codegen import (COMMON_TEMPLATE, generate, generate_adaptive, generate_adaptive_vjp, generate_run, generate_run_vjp,
                       HANDLER_TEMPLATE, result_widths, SCALAR_TYPES)
@@ -42,17 +33,13 @@ _lock = threading.RLock()
 
 
 # ----------------------------------------------------------------------------- build and load
-def _compiler() -> str | None:
-    return shutil.which(os.environ.get("CXX", "g++"))
-
-
 @functools.cache
 def unavailable_reason() -> str | None:
     """Why the native kernel cannot be built here (``None`` where it can): no C++ compiler, no
     XLA FFI headers, or a backend other than the CPU."""
     if jax.default_backend() != "cpu":
         return f"the native kernel runs on the CPU and JAX's default backend is {jax.default_backend()}"
-    if _compiler() is None:
+    if compiler() is None:
         return f"no C++ compiler found ({os.environ.get('CXX', 'g++')}; set $CXX to one)"
     include = Path(jax.ffi.include_dir()) / "xla" / "ffi" / "api" / "ffi.h"
     if not include.is_file():
@@ -104,83 +91,6 @@ SPIN_NS = 100_000
 def threads() -> int:
     """Threads one call splits a batch over: ``$JAXBODY_NATIVE_THREADS``, else the CPU count."""
     return int(os.environ.get("JAXBODY_NATIVE_THREADS", os.cpu_count() or 1))
-
-
-def _cache_dir() -> Path:
-    path = cache_root() / "native"
-    path.mkdir(parents=True, exist_ok=True)
-    return path
-
-
-def _cpu_signature() -> str:
-    # the library is built with -march=native: key it by the processor's instruction set too
-    try:
-        with open("/proc/cpuinfo") as fh:
-            flags = next((line for line in fh if line.startswith("flags")), "")
-    except OSError:
-        flags = ""
-    return platform.machine() + flags
-
-
-#: The compiler flags of every build but the optimisation level (:func:`compiler_flags`).
-#: -ffp-contract=fast: fused multiply-adds; -fno-math-errno: sin/cos/sqrt without errno.
-COMPILER_FLAGS = ("-march=native", "-std=gnu++17", "-ffp-contract=fast", "-fno-math-errno", "-shared", "-fPIC", "-pthread", "-w")
-
-#: The optimisation levels ``$JAXBODY_NATIVE_OPTIMISATION`` may choose.
-OPTIMISATION_LEVELS = ("-O0", "-O1", "-O2", "-O3")
-
-
-def compiler_flags() -> tuple[str, ...]:
-    """The flags of a build: ``$JAXBODY_NATIVE_OPTIMISATION`` (default ``-O2``) and :data:`COMPILER_FLAGS`.
-
-    ``-O0`` builds the whole-solve programs of a 7-DoF arm about 10x faster than ``-O2`` (8 s
-    against 86 s for Panda's reverse sweep) and runs them several times slower: the test suite,
-    which builds many programs and runs each briefly, uses it; users keep ``-O2``."""
-    level = os.environ.get("JAXBODY_NATIVE_OPTIMISATION", "-O2")
-    if level not in OPTIMISATION_LEVELS:
-        raise ValueError(f"JAXBODY_NATIVE_OPTIMISATION must be one of {', '.join(OPTIMISATION_LEVELS)}, got {level!r}")
-    return (level, *COMPILER_FLAGS)
-
-
-def build_library(source: str, stem: str) -> Path:
-    """Compile ``source`` to a shared library in the cache (once per source, compiler and CPU)."""
-    compiler = _compiler()
-    if compiler is None:
-        raise RuntimeError("the native kernel needs a C++ compiler (g++ or $CXX); use kernel='vectorised'")
-    flags = compiler_flags()
-    key = hashlib.sha256("\n".join((source, compiler, *flags, _cpu_signature(), jax.__version__)).encode()).hexdigest()[:24]
-    target = _cache_dir() / f"{stem}_{key}.so"
-    if target.is_file():
-        return target
-    # one builder of a library at a time across processes (test workers, a batch job's
-    # processes): the others wait on the lock and load what it built
-    with open(target.with_suffix(".lock"), "a") as lock, _exclusive(lock):
-        if target.is_file():
-            return target
-        with tempfile.TemporaryDirectory(dir=target.parent) as tmp:
-            src = Path(tmp) / "src.cc"
-            src.write_text(source)
-            out = Path(tmp) / "lib.so"
-            cmd = [compiler, *flags, f"-I{jax.ffi.include_dir()}", str(src), "-o", str(out)]
-            proc = subprocess.run(cmd, capture_output=True, text=True)
-            if proc.returncode != 0:
-                raise RuntimeError(f"building the native kernel failed ({' '.join(cmd)}):\n{proc.stderr[-4000:]}")
-            os.replace(out, target)  # atomic: a process that does not take the lock never sees half a file
-    return target
-
-
-@contextlib.contextmanager
-def _exclusive(fh):
-    """Hold an exclusive advisory lock on the open file ``fh`` (POSIX ``flock``; no lock where the
-    platform has none)."""
-    if fcntl is None:
-        yield
-        return
-    fcntl.flock(fh, fcntl.LOCK_EX)
-    try:
-        yield
-    finally:
-        fcntl.flock(fh, fcntl.LOCK_UN)
 
 
 def _handler_library(dtype) -> Path:
@@ -350,7 +260,7 @@ def build_for(batch: int) -> str:
 
 @functools.cache
 def _has_avx512() -> bool:
-    return " avx512f" in _cpu_signature()
+    return " avx512f" in cpu_signature()
 
 
 #: Modes with one build for every batch size (:meth:`Kernel.build_for`).

@@ -1,0 +1,117 @@
+"""C++ shared libraries built on the user's machine: the compiler, its flags and the on-disk cache.
+
+The native kernel (:mod:`jaxbody.backends.native`) and the run-time check of inputs
+(:mod:`jaxbody.runtime_check`) are C++ compiled when first needed, with the system's compiler
+(``g++``, or ``$CXX``), into ``<cache>/native`` (:func:`jaxbody.compilation_cache.cache_root`).
+A library is keyed by a hash of its source, the compiler, the flags, the processor's
+instruction set and JAX's version, and built once: processes that need the same library at the
+same time take turns on a lock, and the others load what the first built.
+"""
+
+import contextlib
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+try:  # POSIX: builders of the same library in several processes take turns (build_library)
+    import fcntl
+except ImportError:  # pragma: no cover
+    fcntl = None
+
+import jax
+
+from .compilation_cache import cache_root
+
+__all__ = ["COMPILER_FLAGS", "OPTIMISATION_LEVELS", "build_library", "cache_dir", "compiler", "compiler_flags",
+           "cpu_signature"]
+
+
+def compiler() -> str | None:
+    """The path of the C++ compiler (``$CXX``, default ``g++``), or ``None`` where there is none."""
+    return shutil.which(os.environ.get("CXX", "g++"))
+
+
+def cache_dir() -> Path:
+    """Where built libraries are kept: ``<cache>/native`` (created)."""
+    path = cache_root() / "native"
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def cpu_signature() -> str:
+    """The processor's architecture and instruction-set flags: libraries are built with
+    ``-march=native``, so they are keyed by it too."""
+    try:
+        with open("/proc/cpuinfo") as fh:
+            flags = next((line for line in fh if line.startswith("flags")), "")
+    except OSError:
+        flags = ""
+    return platform.machine() + flags
+
+
+#: The compiler flags of every build but the optimisation level (:func:`compiler_flags`).
+#: -ffp-contract=fast: fused multiply-adds; -fno-math-errno: sin/cos/sqrt without errno.
+COMPILER_FLAGS = ("-march=native", "-std=gnu++17", "-ffp-contract=fast", "-fno-math-errno", "-shared", "-fPIC", "-pthread", "-w")
+
+#: The optimisation levels ``$JAXBODY_NATIVE_OPTIMISATION`` may choose.
+OPTIMISATION_LEVELS = ("-O0", "-O1", "-O2", "-O3")
+
+
+def compiler_flags() -> tuple[str, ...]:
+    """The flags of a build: ``$JAXBODY_NATIVE_OPTIMISATION`` (default ``-O2``) and :data:`COMPILER_FLAGS`.
+
+    ``-O0`` builds the whole-solve programs of a 7-DoF arm about 10x faster than ``-O2`` (8 s
+    against 86 s for Panda's reverse sweep) and runs them several times slower: the test suite,
+    which builds many programs and runs each briefly, uses it; users keep ``-O2``."""
+    level = os.environ.get("JAXBODY_NATIVE_OPTIMISATION", "-O2")
+    if level not in OPTIMISATION_LEVELS:
+        raise ValueError(f"JAXBODY_NATIVE_OPTIMISATION must be one of {', '.join(OPTIMISATION_LEVELS)}, got {level!r}")
+    return (level, *COMPILER_FLAGS)
+
+
+def build_library(source: str, stem: str, what: str = "the native kernel", flags: tuple[str, ...] | None = None) -> Path:
+    """Compile ``source`` to a shared library in the cache (once per source, compiler, flags and CPU).
+
+    ``what`` names the library in errors; ``flags`` default to :func:`compiler_flags`."""
+    cxx = compiler()
+    if cxx is None:
+        raise RuntimeError(f"{what} needs a C++ compiler (g++ or $CXX); use kernel='vectorised'"
+                           if what == "the native kernel" else f"{what} needs a C++ compiler (g++ or $CXX)")
+    flags = compiler_flags() if flags is None else tuple(flags)
+    key = hashlib.sha256("\n".join((source, cxx, *flags, cpu_signature(), jax.__version__)).encode()).hexdigest()[:24]
+    target = cache_dir() / f"{stem}_{key}.so"
+    if target.is_file():
+        return target
+    # one builder of a library at a time across processes (test workers, a batch job's
+    # processes): the others wait on the lock and load what it built
+    with open(target.with_suffix(".lock"), "a") as lock, _exclusive(lock):
+        if target.is_file():
+            return target
+        with tempfile.TemporaryDirectory(dir=target.parent) as tmp:
+            src = Path(tmp) / "src.cc"
+            src.write_text(source)
+            out = Path(tmp) / "lib.so"
+            cmd = [cxx, *flags, f"-I{jax.ffi.include_dir()}", str(src), "-o", str(out)]
+            proc = subprocess.run(cmd, capture_output=True, text=True)
+            if proc.returncode != 0:
+                raise RuntimeError(f"building {what} failed ({' '.join(cmd)}):\n{proc.stderr[-4000:]}")
+            os.replace(out, target)  # atomic: a process that does not take the lock never sees half a file
+    return target
+
+
+@contextlib.contextmanager
+def _exclusive(fh):
+    """Hold an exclusive advisory lock on the open file ``fh`` (POSIX ``flock``; no lock where the
+    platform has none)."""
+    if fcntl is None:
+        yield
+        return
+    fcntl.flock(fh, fcntl.LOCK_EX)
+    try:
+        yield
+    finally:
+        fcntl.flock(fh, fcntl.LOCK_UN)
