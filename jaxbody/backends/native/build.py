@@ -41,7 +41,7 @@ def unavailable_reason() -> str | None:
         return f"the native kernel runs on the CPU and JAX's default backend is {jax.default_backend()}"
     if compiler() is None:
         return f"no C++ compiler found ({os.environ.get('CXX', 'g++')}; set $CXX to one)"
-    include = Path(jax.ffi.include_dir()) / "xla" / "ffi" / "api" / "ffi.h"
+    include = Path(jax.ffi.include_dir()) / "xla" / "ffi" / "api" / "c_api.h"
     if not include.is_file():
         return f"jaxlib ships no XLA FFI headers ({include} is missing)"
     return None

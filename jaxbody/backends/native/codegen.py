@@ -105,7 +105,7 @@ _RUN_VJP_BLOCK = _template("run_vjp_block.cc")
 HANDLER_TEMPLATE = _template("handler.cc")
 
 #: The C++ scalar and XLA FFI data type of each dtype the programs are built for.
-SCALAR_TYPES = {np.dtype(np.float64): ("double", "ffi::F64"), np.dtype(np.float32): ("float", "ffi::F32")}
+SCALAR_TYPES = {np.dtype(np.float64): ("double", "XLA_FFI_DataType_F64"), np.dtype(np.float32): ("float", "XLA_FFI_DataType_F32")}
 
 
 def _acceleration(em, model, joints, q, v, f, g, ext, derivative):

@@ -6,10 +6,12 @@
 #include <thread>
 #include <unordered_map>
 #include <vector>
-#include "xla/ffi/api/ffi.h"
+#include <string.h>
+// XLA's C API alone: its C++ binding (ffi.h) takes about a second and a half to compile, this
+// whole file a fraction of that, and the handler is built on a new user's first call
+#include "xla/ffi/api/c_api.h"
 @COMMON@
-namespace ffi = xla::ffi;
-constexpr ffi::DataType DT = @DT@;
+constexpr XLA_FFI_DataType DT = @DT@;
 
 // A persistent pool: a batch is cut into as many slices as threads; the calling thread runs
 // the first, the workers the others (starting threads on every call would cost as much as a
@@ -125,35 +127,64 @@ static Range lookup(int64_t key) {
   return last;
 }
 
-static ffi::Error fd_impl(ffi::RemainingArgs args, ffi::RemainingRets rets, int64_t kernel, int64_t threads) {
-  const Range range = lookup(kernel);
-  if (!range)
-    return ffi::Error(ffi::ErrorCode::kInvalidArgument, "jaxbody native kernel: program not loaded in this process");
-  if (args.size() > MAX_IN || rets.size() > MAX_OUT || rets.size() == 0)
-    return ffi::Error(ffi::ErrorCode::kInvalidArgument, "jaxbody native kernel: too many operands");
-  Inputs in{};
-  for (size_t k = 0; k < args.size(); ++k) {
-    auto x = args.get<ffi::AnyBuffer>(k);
-    if (x.has_error()) return x.error();
-    if (x->element_type() != DT || x->dimensions().size() != 2)
-      return ffi::Error(ffi::ErrorCode::kInvalidArgument, "jaxbody native kernel: operands are 2-D, of the kernel's dtype");
-    in.x[k] = static_cast<const T*>(x->untyped_data());
-    in.s[k] = x->dimensions()[0] == 1 ? 0 : x->dimensions()[1];
-  }
-  int64_t batch = 0;
-  for (size_t j = 0; j < rets.size(); ++j) {
-    auto y = rets.get<ffi::AnyBuffer>(j);
-    if (y.has_error()) return y.error();
-    in.y[j] = static_cast<T*>((*y)->untyped_data());
-    batch = (*y)->dimensions()[0];
-    in.n[j] = (*y)->dimensions()[1];
-  }
-  // one slice per thread for batches worth it (at least 64 states a slice)
-  int64_t n = threads < batch / 64 ? threads : batch / 64;
-  if (n <= 1) range(&in, 0, batch);
-  else pool()->run(range, &in, batch, n);
-  return ffi::Error::Success();
+static XLA_FFI_Error* fail(const XLA_FFI_Api* api, const char* message) {
+  XLA_FFI_Error_Create_Args args = {XLA_FFI_Error_Create_Args_STRUCT_SIZE, nullptr, message,
+                                    XLA_FFI_Error_Code_INVALID_ARGUMENT};
+  return api->XLA_FFI_Error_Create(&args);
 }
 
-XLA_FFI_DEFINE_HANDLER_SYMBOL(jaxbody_fd, fd_impl,
-                              ffi::Ffi::Bind().RemainingArgs().RemainingRets().Attr<int64_t>("kernel").Attr<int64_t>("threads"));
+// The int64 scalar attribute `name` of the call (nullptr where there is none).
+static const int64_t* attribute(const XLA_FFI_CallFrame* frame, const char* name) {
+  const size_t len = strlen(name);
+  for (int64_t k = 0; k < frame->attrs.size; ++k) {
+    const XLA_FFI_ByteSpan* key = frame->attrs.names[k];
+    if (frame->attrs.types[k] != XLA_FFI_AttrType_SCALAR || key->len != len || memcmp(key->ptr, name, len) != 0) continue;
+    const XLA_FFI_Scalar* value = static_cast<const XLA_FFI_Scalar*>(frame->attrs.attrs[k]);
+    return value->dtype == XLA_FFI_DataType_S64 ? static_cast<const int64_t*>(value->value) : nullptr;
+  }
+  return nullptr;
+}
+
+// The call: operands (B_k, n_k) and results (B, n_j) of the kernel's dtype, attributes "kernel"
+// (the program's key) and "threads".
+extern "C" XLA_FFI_Error* jaxbody_fd(XLA_FFI_CallFrame* frame) {
+  const XLA_FFI_Api* api = frame->api;
+  // XLA asks a handler for the API version it was built against before calling it
+  if (frame->extension_start && frame->extension_start->type == XLA_FFI_Extension_Metadata) {
+    auto* ext = reinterpret_cast<XLA_FFI_Metadata_Extension*>(frame->extension_start);
+    ext->metadata->api_version = XLA_FFI_Api_Version{XLA_FFI_Api_Version_STRUCT_SIZE, nullptr, XLA_FFI_API_MAJOR,
+                                                     XLA_FFI_API_MINOR};
+    ext->metadata->traits = 0;
+    return nullptr;
+  }
+  if (frame->stage != XLA_FFI_ExecutionStage_EXECUTE) return nullptr;
+  const int64_t* kernel = attribute(frame, "kernel");
+  const int64_t* threads = attribute(frame, "threads");
+  if (!kernel || !threads) return fail(api, "jaxbody native kernel: int64 attributes 'kernel' and 'threads' expected");
+  const Range range = lookup(*kernel);
+  if (!range) return fail(api, "jaxbody native kernel: program not loaded in this process");
+  if (frame->args.size > MAX_IN || frame->rets.size > MAX_OUT || frame->rets.size == 0)
+    return fail(api, "jaxbody native kernel: too many operands");
+  Inputs in{};
+  for (int64_t k = 0; k < frame->args.size; ++k) {
+    const auto* x = static_cast<const XLA_FFI_Buffer*>(frame->args.args[k]);
+    if (frame->args.types[k] != XLA_FFI_ArgType_BUFFER || x->dtype != DT || x->rank != 2)
+      return fail(api, "jaxbody native kernel: operands are 2-D, of the kernel's dtype");
+    in.x[k] = static_cast<const T*>(x->data);
+    in.s[k] = x->dims[0] == 1 ? 0 : x->dims[1];
+  }
+  int64_t batch = 0;
+  for (int64_t j = 0; j < frame->rets.size; ++j) {
+    const auto* y = static_cast<const XLA_FFI_Buffer*>(frame->rets.rets[j]);
+    if (frame->rets.types[j] != XLA_FFI_RetType_BUFFER || y->dtype != DT || y->rank != 2)
+      return fail(api, "jaxbody native kernel: results are 2-D, of the kernel's dtype");
+    in.y[j] = static_cast<T*>(y->data);
+    batch = y->dims[0];
+    in.n[j] = y->dims[1];
+  }
+  // one slice per thread for batches worth it (at least 64 states a slice)
+  int64_t n = *threads < batch / 64 ? *threads : batch / 64;
+  if (n <= 1) range(&in, 0, batch);
+  else pool()->run(range, &in, batch, n);
+  return nullptr;
+}
