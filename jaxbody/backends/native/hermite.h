@@ -4,13 +4,16 @@
 // increments (h f). With a = k1 + k4 + 2 y0 − 2 y1 and b = −2 k1 − k4 − 3 y0 + 3 y1 it is the
 // cubic y(θ) = ((a θ + b) θ + k1) θ + y0, evaluated as jnp.polyval does, at
 // θ = (t − tprev) / (tnext − tprev) (diffrax's linear_rescale: 0 for a step of length zero).
-static inline T hermite_theta(T tprev, T t, T tnext) {
-  return tprev == tnext ? T(0) : (t - tprev) / (tnext - tprev);
+// (X: a scalar T, or V for a block of lanes.)
+template <class X>
+static inline X hermite_theta(X tprev, X t, X tnext) {
+  return tprev == tnext ? X{} : (t - tprev) / (tnext - tprev);
 }
 
-static inline T hermite(T y0, T y1, T k1, T k4, T theta) {
-  const T a = k1 + k4 + T(2) * y0 - T(2) * y1;
-  const T b = -T(2) * k1 - k4 - T(3) * y0 + T(3) * y1;
+template <class X>
+static inline X hermite(X y0, X y1, X k1, X k4, X theta) {
+  const X a = k1 + k4 + T(2) * y0 - T(2) * y1;
+  const X b = -T(2) * k1 - k4 - T(3) * y0 + T(3) * y1;
   return ((a * theta + b) * theta + k1) * theta + y0;
 }
 

@@ -59,18 +59,27 @@ static void run_block(const Inputs& in, int64_t b0, int n) {
     // the saves in this step [tprev, tnext] (every pending time up to tnext, as diffrax's loop
     // saves them), by its dense output: diffrax's cubic Hermite interpolant from the step's end
     // states and its first and last stage increments, y0 + θ (k1 + θ (b + θ a)) at
-    // θ = (t − tprev) / h; a frozen lane saves its state (as its field is zero)
-    for (int l = 0; l < n; ++l) {
-      if (!active[l]) continue;
-      const T* row = ts + (b0 + l) * ts_stride;
-      while (saved[l] < n_ts && row[saved[l]] <= tnext[l]) {
+    // θ = (t − tprev) / h, for every lane with a pending save at once; a frozen lane saves its
+    // state (as its field is zero)
+    for (;;) {
+      I pending = I{};
+      U t_save = tnext;
+      bool any_save = false;
+      for (int l = 0; l < n; ++l) {
+        if (!active[l] || saved[l] >= n_ts) continue;
+        const T t = ts[(b0 + l) * ts_stride + saved[l]];
+        if (t <= tnext[l]) pending[l] = -1, t_save[l] = t, any_save = true;
+      }
+      if (!any_save) break;
+      const U theta = hermite_theta(tprev, t_save, tnext);
+      U y[N];
+      for (int i = 0; i < NQ; ++i) y[i] = frozen ? qc[i] : hermite(qc[i], qu[i], k1[i], k4[i], theta);
+      for (int i = 0; i < NV; ++i) y[NQ + i] = frozen ? vc[i] : hermite(vc[i], vn[i], k1[NQ + i], k4[NQ + i], theta);
+      for (int j = 0; j < NW; ++j) y[NQ + NV + j] = frozen ? wc[j] : hermite(wc[j], wn[j], k1[NQ + NV + j], k4[NQ + NV + j], theta);
+      for (int l = 0; l < n; ++l) {
+        if (!pending[l]) continue;
         T* dst = out_ys + (b0 + l) * ys_width + saved[l] * N;
-        const T theta = hermite_theta(tprev[l], row[saved[l]], tnext[l]);
-        for (int i = 0; i < N; ++i) {
-          const T y0 = i < NQ ? qc[i][l] : i < NQ + NV ? vc[i - NQ][l] : wc[i - NQ - NV][l];
-          const T y1 = i < NQ ? qu[i][l] : i < NQ + NV ? vn[i - NQ][l] : wn[i - NQ - NV][l];
-          dst[i] = frozen[l] ? y0 : hermite(y0, y1, k1[i][l], k4[i][l], theta);
-        }
+        for (int i = 0; i < N; ++i) dst[i] = y[i][l];
         ++saved[l];
       }
     }
