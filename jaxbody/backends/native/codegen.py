@@ -348,8 +348,10 @@ def generate_run(tree, joints, dtype, harmonics=None) -> str:
     ``harmonics``: that of a Fourier-series joint torque (``None``: none)."""
     _, invariant, step, _, (_, _, dw), (k1, k4, qu) = _run_program(tree, joints, harmonics=harmonics)
     body = step + [f"dw[{j}] = {_symbol_value(x)};" for j, x in enumerate(dw)]
-    body += [f"{name}[{i}] = {_symbol_value(x)};" for name, xs in (("k1", k1), ("k4", k4), ("qu", qu))
-             for i, x in enumerate(xs)]
+    # stored only by a solve that saves at requested times (n_ts > 0): a solve that keeps its end
+    # state alone stores nothing more than it did without them
+    body += ["if (n_ts > 0) {"] + [f"  {name}[{i}] = {_symbol_value(x)};" for name, xs in (("k1", k1), ("k4", k4), ("qu", qu))
+                                   for i, x in enumerate(xs)] + ["}"]
     return _run_source(_RUN_BLOCK, invariant, {"BODY": body}, joints, dtype, harmonics)
 
 

@@ -59,9 +59,9 @@ static void run_block(const Inputs& in, int64_t b0, int n) {
     // the saves in this step [tprev, tnext] (every pending time up to tnext, as diffrax's loop
     // saves them), by its dense output: diffrax's cubic Hermite interpolant from the step's end
     // states and its first and last stage increments, y0 + θ (k1 + θ (b + θ a)) at
-    // θ = (t − tprev) / h, for every lane with a pending save at once; a frozen lane saves its
-    // state (as its field is zero)
-    for (;;) {
+    // θ = (t − tprev) / h, for every lane with a pending save at once, until none has one; a
+    // frozen lane saves its state (as its field is zero)
+    while (n_ts > 0) {
       I pending = I{};
       U t_save = tnext;
       bool any_save = false;
