@@ -1,6 +1,6 @@
 """C++ code generation of the native kernel: the programs of every mode from the traced tree.
 
-The templates (``common.h``, ``kernel.cc``, ``access.h``, ``run_block.cc``,
+The templates (``common.h``, ``kernel.cc``, ``access.h``, ``hermite.h``, ``run_block.cc``,
 ``run_vjp_block.cc``, ``handler.cc``) are package data next to this module; the generated
 lines of one tree fill their ``@…@`` slots.
 """
@@ -86,10 +86,13 @@ _ACCESS = _template("access.h")
 # clip to t1, the quaternion renormalisation after each step and the hold of a trajectory at
 # its first non-finite step are those of jaxbody.simulation's fixed-step solve (diffrax's
 # ConstantStepSize): t_k = t0 + (t1 - t0) * (k / N), t_N = t1, a time within 100 ulp below t1
-# rounded to t1. Operands: q, v, f, p, g, ext, k, r, d, the work w0 and the schedule (t0, t1, N,
-# t1 - 100 ulp, the step budget, dt0, frozen, steps per checkpoint); results: q, v, w, (t reached,
-# steps, failed) and, when asked for, the checkpoints of the reverse sweep (_RUN_VJP_BLOCK). A
-# frozen lane (an input that failed simulate's checks) takes its steps without moving.
+# rounded to t1. Operands: q, v, f, p, g, ext, k, r, d, the work w0, the schedule (t0, t1, N,
+# t1 - 100 ulp, the step budget, dt0, frozen, steps per checkpoint, number of save times) and the
+# save times; results: q, v, w, the status (jaxbody.backends.native.solve.STATUS: t reached,
+# steps, accepted, rejected, result code, saves), the saved states (each from the dense output of
+# the step that covers its time, _HERMITE) and, when asked for, the checkpoints of the reverse
+# sweep (_RUN_VJP_BLOCK). A frozen lane (an input that failed simulate's checks) takes its steps
+# without moving.
 _RUN_BLOCK = _template("run_block.cc")
 
 # The dense output of an RK4 step (diffrax's cubic Hermite interpolant) and its derivatives,
@@ -99,10 +102,13 @@ _HERMITE = _template("hermite.h")
 # The reverse sweep of a whole solve (reverse mode with respect to the initial state): for each
 # segment of `every` steps, last first, the steps are recomputed from the segment's checkpoint
 # (the forward program, so the same states) and kept; then the reverse-mode program of one step
-# carries the cotangents of (q, v) back through them, the work's cotangent held (w1 = w0 + Δw).
-# A lane's own steps are those it took (a frozen lane: none). Operands: those of _RUN_BLOCK, then
-# the checkpoints, the forward's status, and the cotangents of the final q, v and w; results:
-# the cotangents of the initial q and v.
+# carries the cotangents of (q, v) back through them, the work's cotangent held (w1 = w0 + Δw);
+# the cotangents of the states saved in a step enter its reverse-mode program through the dense
+# output (its stage increments and its end state before renormalisation). A lane's own steps are
+# those it took (a frozen lane: none; its saves pass their cotangents to its state). Operands:
+# those of _RUN_BLOCK but the save times, then the checkpoints, the forward's status, the
+# cotangents of the final q, v and w, the save times and the cotangents of the saved states;
+# results: the cotangents of the initial q, v and w.
 _RUN_VJP_BLOCK = _template("run_vjp_block.cc")
 
 #: The XLA FFI handler, one per dtype: a thread pool that runs a program over a batch.
