@@ -479,7 +479,7 @@ def test_fourier_torque_against_mujoco_qfrc_applied(models_dir):
 def test_fourier_torque_gradients(monkeypatch):
     """With a Fourier-series torque, the gradients with respect to the initial state through the
     native reverse sweeps (the torque's stage times recomputed and replayed) equal diffrax's loop:
-    RK4 (the torque's work in the loss) and Dopri5 (states saved inside the steps); the gradient
+    RK4 and Dopri5 (states and both works saved inside the steps in the loss); the gradient
     with respect to the torque's coefficients (diffrax's loop) against central differences."""
     model, scene, torque = _torque_scene()
     q0, v0 = _state(model, 4)
@@ -489,8 +489,12 @@ def test_fourier_torque_gradients(monkeypatch):
         monkeypatch.setattr(native, name, lambda *a, _fn=fn, **kw: calls.append(_fn.__name__) or _fn(*a, **kw))
 
     def fixed(q, v):
-        sol = _solve(scene, q, v, 0.45, t0=0.35, max_steps=20)
-        return jnp.sum(jnp.sin(sol.q[-1])) + jnp.sum(sol.v[-1] ** 2) + 3.0 * sol.work["torque"][-1]
+        # states saved inside the steps, at a step's end and at t1: both works through the dense output
+        saves = diffrax.SaveAt(ts=jnp.array([0.35, 0.383, 0.4, 0.427]), t1=True)
+        sol = _solve(scene, q, v, 0.45, t0=0.35, max_steps=20, saveat=saves)
+        weights = jnp.arange(1.0, 6.0)
+        return (jnp.sum(weights[:, None] * jnp.sin(sol.q)) + jnp.sum(sol.v_final ** 2)
+                + jnp.sum(weights * (3.0 * sol.work["torque"] + sol.work["dampers"])))
 
     def adaptive(q, v, scene=scene):
         sol = _adaptive(scene, q, v, "dopri5", 0.3, t0=0.1, saveat=diffrax.SaveAt(ts=jnp.linspace(0.1, 0.3, 5)),

@@ -260,10 +260,11 @@ def _native_reverse(adjoint, max_steps, slots, y0, method):
             model, kwargs, layout = _adaptive_arguments(scene, y0, valid, slots, controller)
             times = (t0, _forward_in_time(t0, t1, 1.0))
             kwargs.update(dt0=dt0, max_steps=max_steps)
-        return model, kwargs, layout, times, _main_save(saveat).ts
+        return model, kwargs, layout, times, saveat
 
     def forward(rest, y0):
-        model, kwargs, layout, times, ts = arguments(rest, y0)
+        model, kwargs, layout, times, saveat = arguments(rest, y0)
+        ts = _main_save(saveat).ts
         if method == "rk4":
             *out, saved = native.rk4_rollout_checkpointed(model, y0[0], y0[1], *times, checkpoints, ts=ts, **kwargs)
         else:
@@ -272,16 +273,16 @@ def _native_reverse(adjoint, max_steps, slots, y0, method):
         # residuals are arrays: the rest (the controller's norm, the solver) is held here
         dynamic, static = eqx.partition(rest, eqx.is_array)
         held.append(static)
-        return _saved_outputs(y0, times[1], rest[8], layout, *out, fixed=method == "rk4"), (dynamic, y0, saved, out[3])
+        return _saved_outputs(y0, times[1], saveat, layout, *out, fixed=method == "rk4"), (dynamic, y0, saved, out[3])
 
     def backward(residuals, cotangents):
         dynamic, y0, saved, status = residuals
         rest = eqx.combine(dynamic, held[-1])
-        model, kwargs, layout, times, ts = arguments(rest, y0)
-        ct, ct_saved, ct_saved_works = _saved_cotangents(rest[8], layout, y0, cotangents)
+        model, kwargs, layout, times, saveat = arguments(rest, y0)
+        ct, ct_saved, ct_saved_works = _saved_cotangents(saveat, layout, y0, cotangents)
         work = _works(ct[2], layout, y0[0].dtype) if len(y0) == 3 else 0.0
-        common = dict(saved=saved, status=status, cotangent_q=ct[0], cotangent_v=ct[1], cotangent_work=work, ts=ts,
-                      cotangent_saved=ct_saved)
+        common = dict(saved=saved, status=status, cotangent_q=ct[0], cotangent_v=ct[1], cotangent_work=work,
+                      ts=_main_save(saveat).ts, cotangent_saved=ct_saved)
         if method == "rk4":
             kwargs.pop("work0")
             ct_q, ct_v, ct_w = native.rk4_rollout_vjp(model, y0[0], y0[1], *times, checkpoints, **common, **kwargs)
