@@ -311,6 +311,14 @@ def _instantiate(cotangent):
     return cotangent
 
 
+def _final_row(outputs):
+    """``(ts, ys, tf, yf, stats, result)`` with the final time and state as one row, as the native
+    solves give them: where diffrax's loop saves the end state among the requested times it
+    returns every saved row for them too, its last the final one."""
+    ts, ys, tf, yf, stats, result = outputs
+    return ts, ys, tf[-1:], tuple(a[-1:] for a in yf), stats, result
+
+
 def native_or_stepped(rest, y0, native, stepped, reverse):
     """``native(rest, y0)``, differentiated in reverse mode by ``reverse`` where only ``y0``
     carries a derivative and ``reverse`` is given, else as ``stepped(rest, y0)`` (the same
@@ -333,7 +341,7 @@ def native_or_stepped(rest, y0, native, stepped, reverse):
         if reverse is not None and not any(p.perturbed for p in jax.tree.leaves(dynamic)):
             out, residuals = reverse[0](eqx.combine(values, static), y0_values)
             return out, (None, residuals)
-        out, pullback = jax.vjp(lambda d, y: stepped(eqx.combine(d, static), y), values, y0_values)
+        out, pullback = jax.vjp(lambda d, y: _final_row(stepped(eqx.combine(d, static), y)), values, y0_values)
         return out, (pullback, None)
 
     def backward(residuals, cotangents):
