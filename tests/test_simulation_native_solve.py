@@ -128,8 +128,10 @@ def test_native_solve_batch_outcomes_equal_the_stepped_solve(monkeypatch):
     t1s = jnp.linspace(0.05, 0.4, 9)
 
     def run():
-        return jax.jit(jax.vmap(lambda q, v, t1: _solve(scene, q, v, t1, saveat=jnp.linspace(0.0, 1.0, 6) * t1, throw=False,
-                                                        max_steps=30)))(qs, vs, t1s)
+        def one(q, v, t1):
+            return _solve(scene, q, v, t1, saveat=jnp.linspace(0.0, 1.0, 6) * t1, throw=False, max_steps=30)
+
+        return jax.jit(jax.vmap(one))(qs, vs, t1s)
 
     calls = []
     rollout = native.rk4_rollout

@@ -356,8 +356,9 @@ def generate_run(tree, joints, dtype, harmonics=None) -> str:
     body = step + [f"dw[{j}] = {_symbol_value(x)};" for j, x in enumerate(dw)]
     # stored only by a solve that saves at requested times (n_ts > 0): a solve that keeps its end
     # state alone stores nothing more than it did without them
-    body += ["if (n_ts > 0) {"] + [f"  {name}[{i}] = {_symbol_value(x)};" for name, xs in (("k1", k1), ("k4", k4), ("qu", qu))
-                                   for i, x in enumerate(xs)] + ["}"]
+    dense = [f"  {name}[{i}] = {_symbol_value(x)};" for name, xs in (("k1", k1), ("k4", k4), ("qu", qu))
+             for i, x in enumerate(xs)]
+    body += ["if (n_ts > 0) {"] + dense + ["}"]
     return _run_source(_RUN_BLOCK, invariant, {"BODY": body}, joints, dtype, harmonics)
 
 
@@ -384,7 +385,8 @@ def generate_run_vjp(tree, joints, dtype, harmonics=None) -> str:
 
 
 def _run_source(block: str, invariant: list, parts: dict, joints, dtype, harmonics=None) -> str:
-    text = block.replace("@HERMITE@", _HERMITE).replace("@ACCESS@", _ACCESS).replace("@INVARIANT@", "\n".join("  " + line for line in invariant))
+    text = block.replace("@HERMITE@", _HERMITE).replace("@ACCESS@", _ACCESS)
+    text = text.replace("@INVARIANT@", "\n".join("  " + line for line in invariant))
     for key, lines in parts.items():
         text = text.replace(f"@{key}@", "\n".join("      " + line for line in lines))
     text = text.replace("@NQ@", str(joints.nq)).replace("@NV@", str(joints.nv)).replace("@NW@", str(work_count(harmonics)))

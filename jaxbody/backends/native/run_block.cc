@@ -75,7 +75,10 @@ static void run_block(const Inputs& in, int64_t b0, int n) {
       U y[N];
       for (int i = 0; i < NQ; ++i) y[i] = frozen ? qc[i] : hermite(qc[i], qu[i], k1[i], k4[i], theta);
       for (int i = 0; i < NV; ++i) y[NQ + i] = frozen ? vc[i] : hermite(vc[i], vn[i], k1[NQ + i], k4[NQ + i], theta);
-      for (int j = 0; j < NW; ++j) y[NQ + NV + j] = frozen ? wc[j] : hermite(wc[j], wn[j], k1[NQ + NV + j], k4[NQ + NV + j], theta);
+      for (int j = 0; j < NW; ++j) {
+        const int i = NQ + NV + j;
+        y[i] = frozen ? wc[j] : hermite(wc[j], wn[j], k1[i], k4[i], theta);
+      }
       for (int l = 0; l < n; ++l) {
         if (!pending[l]) continue;
         T* dst = out_ys + (b0 + l) * ys_width + saved[l] * N;

@@ -80,12 +80,12 @@ def rk4_rollout(
     state: :func:`rk4_rollout_vjp`; :func:`jaxbody.simulate` differentiates anything else through
     its step-by-step solve, which computes the same values. No checks; ``t1 >= t0``.
     """
-    return _rollout(model, q, v, t0, t1, dt0, max_steps, force, ts, gravity, stiffness, reference, damping, torque, work0,
-                    frozen, None)
+    return _rollout(model, q, v, t0, t1, dt0, max_steps, force, ts, gravity, stiffness, reference, damping, torque,
+                    work0, frozen, None)
 
 
-def _rollout(model, q, v, t0, t1, dt0, max_steps, force, ts, gravity, stiffness, reference, damping, torque, work0, frozen,
-             checkpoints) -> tuple:
+def _rollout(model, q, v, t0, t1, dt0, max_steps, force, ts, gravity, stiffness, reference, damping, torque, work0,
+             frozen, checkpoints) -> tuple:
     """:func:`rk4_rollout`, and with ``checkpoints`` (a bounded ``max_steps``) also the
     checkpoints of :func:`rk4_rollout_vjp`."""
     every = 1
@@ -166,8 +166,8 @@ def rk4_rollout_checkpointed(model: Model, q, v, t0, t1, dt0, max_steps: int, ch
     reverse sweep (:func:`rk4_rollout_vjp`): the state every ``every`` steps, ``every`` the
     fewest steps that fit ``max_steps`` into ``checkpoints`` slots (:func:`checkpoint_layout`).
     Returns ``(q, v, work, status, ys, checkpoints)``."""
-    return _rollout(model, q, v, t0, t1, dt0, max_steps, force, ts, gravity, stiffness, reference, damping, torque, work0,
-                    frozen, checkpoints)
+    return _rollout(model, q, v, t0, t1, dt0, max_steps, force, ts, gravity, stiffness, reference, damping, torque,
+                    work0, frozen, checkpoints)
 
 
 def rk4_rollout_vjp(model: Model, q, v, t0, t1, dt0, max_steps: int, checkpoints: int, saved, status, cotangent_q,
