@@ -1,4 +1,39 @@
 @HERMITE@
+// The saves in one step [tprev, tnext] of a block (every pending time up to tnext, as diffrax's
+// loop saves them) by its dense output: diffrax's cubic Hermite interpolant from the step's end
+// states (y0 = (qc, vc, wc), y1 = (qu, vn, wn)) and its first and last stage increments,
+// y0 + θ (k1 + θ (b + θ a)) at θ = (t − tprev) / h, for every lane with a pending save at once,
+// until none has one; a frozen lane saves its state (as its field is zero). `saved`: each lane's
+// saves so far, `next`: its next save time (inf: none left). Not inlined: the step's loop keeps
+// its registers for the step, which calls this only when a lane has a save due.
+static __attribute__((noinline)) void save_step(const V* qc, const V* vc, const V* wc, const V* qu, const V* vn,
+                                                const V* wn, const V* k1, const V* k4, V tprev, V tnext, I active,
+                                                I frozen, const T* ts, int64_t ts_stride, int64_t n_ts, T* out,
+                                                int64_t width, int64_t b0, int n, int64_t* saved, V& next) {
+  constexpr int NQ = @NQ@, NV = @NV@, NW = @NW@, N = NQ + NV + NW;
+  for (;;) {
+    const I pending = active & (next <= tnext);
+    bool any = false;
+    for (int l = 0; l < n; ++l) any |= pending[l] != 0;
+    if (!any) break;
+    const V theta = hermite_theta(tprev, next, tnext);
+    V y[N];
+    for (int i = 0; i < NQ; ++i) y[i] = frozen ? qc[i] : hermite(qc[i], qu[i], k1[i], k4[i], theta);
+    for (int i = 0; i < NV; ++i) y[NQ + i] = frozen ? vc[i] : hermite(vc[i], vn[i], k1[NQ + i], k4[NQ + i], theta);
+    for (int j = 0; j < NW; ++j) {
+      const int i = NQ + NV + j;
+      y[i] = frozen ? wc[j] : hermite(wc[j], wn[j], k1[i], k4[i], theta);
+    }
+    for (int l = 0; l < n; ++l) {
+      if (!pending[l]) continue;
+      T* dst = out + (b0 + l) * width + saved[l] * N;
+      for (int i = 0; i < N; ++i) dst[i] = y[i][l];
+      ++saved[l];
+      next[l] = saved[l] < n_ts ? ts[(b0 + l) * ts_stride + saved[l]] : T(INFINITY);
+    }
+  }
+}
+
 static void run_block(const Inputs& in, int64_t b0, int n) {
 @ACCESS@
 @INVARIANT@
@@ -20,7 +55,8 @@ static void run_block(const Inputs& in, int64_t b0, int n) {
   T* out_ys = in.y[4];
   const int64_t ys_width = in.n[4];
   int64_t saved[W];
-  for (int l = 0; l < W; ++l) saved[l] = 0;
+  U next;  // each lane's next save time (inf: none)
+  for (int l = 0; l < W; ++l) saved[l] = 0, next[l] = n_ts > 0 && l < n ? ts[(b0 + l) * ts_stride] : T(INFINITY);
   U tprev = t0, tnext = t0 + dt0;
   tnext = tnext < t1 ? tnext : t1;
   U count = U{};
@@ -56,35 +92,14 @@ static void run_block(const Inputs& in, int64_t b0, int n) {
     for (int i = 0; i < NQ; ++i) finite &= (qn[i] - qn[i]) == T(0);
     for (int i = 0; i < NV; ++i) finite &= (vn[i] - vn[i]) == T(0);
     finite |= frozen;
-    // the saves in this step [tprev, tnext] (every pending time up to tnext, as diffrax's loop
-    // saves them), by its dense output: diffrax's cubic Hermite interpolant from the step's end
-    // states and its first and last stage increments, y0 + θ (k1 + θ (b + θ a)) at
-    // θ = (t − tprev) / h, for every lane with a pending save at once, until none has one; a
-    // frozen lane saves its state (as its field is zero)
-    while (n_ts > 0) {
-      I pending = I{};
-      U t_save = tnext;
-      bool any_save = false;
-      for (int l = 0; l < n; ++l) {
-        if (!active[l] || saved[l] >= n_ts) continue;
-        const T t = ts[(b0 + l) * ts_stride + saved[l]];
-        if (t <= tnext[l]) pending[l] = -1, t_save[l] = t, any_save = true;
-      }
-      if (!any_save) break;
-      const U theta = hermite_theta(tprev, t_save, tnext);
-      U y[N];
-      for (int i = 0; i < NQ; ++i) y[i] = frozen ? qc[i] : hermite(qc[i], qu[i], k1[i], k4[i], theta);
-      for (int i = 0; i < NV; ++i) y[NQ + i] = frozen ? vc[i] : hermite(vc[i], vn[i], k1[NQ + i], k4[NQ + i], theta);
-      for (int j = 0; j < NW; ++j) {
-        const int i = NQ + NV + j;
-        y[i] = frozen ? wc[j] : hermite(wc[j], wn[j], k1[i], k4[i], theta);
-      }
-      for (int l = 0; l < n; ++l) {
-        if (!pending[l]) continue;
-        T* dst = out_ys + (b0 + l) * ys_width + saved[l] * N;
-        for (int i = 0; i < N; ++i) dst[i] = y[i][l];
-        ++saved[l];
-      }
+    // the saves in this step (save_step), where a lane has one due
+    if (n_ts > 0) {
+      const I due = active & (next <= tnext);
+      bool any_due = false;
+      for (int l = 0; l < n; ++l) any_due |= due[l] != 0;
+      if (any_due)
+        save_step(qc, vc, wc, qu, vn, wn, k1, k4, tprev, tnext, active, frozen, ts, ts_stride, n_ts, out_ys, ys_width, b0,
+                  n, saved, next);
     }
     // a lane that is done keeps its state, and so does a frozen one (its time runs on)
     const I moving = active & (frozen == 0);

@@ -1,5 +1,29 @@
 @HERMITE@
 #include <memory>
+// The cotangents of the states a kept step saved (`row`: its state, length, times and saves
+// [first, end)): y(θ) = h00 y0 + h01 y1 + h10 k1 + h11 k4 puts them onto the step's start (l0),
+// end (l1) and stage increments (sk1, sk4); a frozen lane saved its state itself. Not inlined:
+// the sweep's loop keeps its registers for the step's reverse-mode program.
+static __attribute__((noinline)) void save_cotangents(const V* row, I stepped, I frozen, const T* ts, int64_t ts_stride,
+                                                      const T* ct, int64_t ct_stride, int64_t b0, int n, V* l0, V* l1,
+                                                      V* sk1, V* sk4) {
+  constexpr int NS = @NQ@ + @NV@, N = NS + @NW@;
+  for (int i = 0; i < N; ++i) l0[i] = V{}, l1[i] = V{}, sk1[i] = V{}, sk4[i] = V{};
+  for (int l = 0; l < n; ++l) {
+    if (!stepped[l]) continue;
+    const T* trow = ts + (b0 + l) * ts_stride;
+    const T* crow = ct + (b0 + l) * ct_stride;
+    for (int64_t idx = int64_t(row[NS + 3][l]); idx < int64_t(row[NS + 4][l]); ++idx) {
+      T w[4] = {T(1), T(0), T(0), T(0)};
+      if (!frozen[l]) hermite_weights(hermite_theta(row[NS + 1][l], trow[idx], row[NS + 2][l]), w);
+      for (int i = 0; i < N; ++i) {
+        const T c = crow[idx * N + i];
+        l0[i][l] += w[0] * c, l1[i][l] += w[1] * c, sk1[i][l] += w[2] * c, sk4[i][l] += w[3] * c;
+      }
+    }
+  }
+}
+
 static void vjp_block(const Inputs& in, int64_t b0, int n) {
 @ACCESS@
 @INVARIANT@
@@ -23,6 +47,7 @@ static void vjp_block(const Inputs& in, int64_t b0, int n) {
   U sq[NQ], sv[NV], sw[NW], sk1[N], sk4[N], squ[NQ];
   // the saved states' cotangents on the step's start and end state (y0, y1)
   U l0[N], l1[N];
+  for (int i = 0; i < N; ++i) l0[i] = U{}, l1[i] = U{}, sk1[i] = U{}, sk4[i] = U{};
   int64_t total = 0;
   for (int l = 0; l < n; ++l) total = int64_t(taken[l]) > total ? int64_t(taken[l]) : total;
   constexpr int CK = NS + 3;    // a checkpoint: the state, the step's times, the saves made
@@ -75,23 +100,8 @@ static void vjp_block(const Inputs& in, int64_t b0, int n) {
       const V* row = &kept[(r - first) * KEPT];
       const I stepped = (U{} + T(r)) < taken;
       const I active = stepped & (frozen == 0);
-      // the states saved in this step, y(θ) = h00 y0 + h01 y1 + h10 k1 + h11 k4: their
-      // cotangents onto the step's start (l0), end (l1) and stage increments; a frozen lane
-      // saved its state itself
-      for (int i = 0; i < N; ++i) l0[i] = U{}, l1[i] = U{}, sk1[i] = U{}, sk4[i] = U{};
-      for (int l = 0; l < n; ++l) {
-        if (!stepped[l]) continue;
-        const T* trow = ts + (b0 + l) * ts_stride;
-        const T* crow = ct_saved + (b0 + l) * ct_stride;
-        for (int64_t idx = int64_t(row[NS + 3][l]); idx < int64_t(row[NS + 4][l]); ++idx) {
-          T w[4] = {T(1), T(0), T(0), T(0)};
-          if (!frozen[l]) hermite_weights(hermite_theta(row[NS + 1][l], trow[idx], row[NS + 2][l]), w);
-          for (int i = 0; i < N; ++i) {
-            const T c = crow[idx * N + i];
-            l0[i][l] += w[0] * c, l1[i][l] += w[1] * c, sk1[i][l] += w[2] * c, sk4[i][l] += w[3] * c;
-          }
-        }
-      }
+      // the saved states' cotangents (a solve without save times: all zero, as set before the sweep)
+      if (n_ts > 0) save_cotangents(row, stepped, frozen, ts, ts_stride, ct_saved, ct_stride, b0, n, l0, l1, sk1, sk4);
       // q1 is the renormalised end state; the interpolant reads it before renormalisation
       for (int i = 0; i < NQ; ++i) sq[i] = aq[i], squ[i] = l1[i];
       for (int i = 0; i < NV; ++i) sv[i] = av[i] + l1[NQ + i];
