@@ -55,8 +55,8 @@ static void run_block(const Inputs& in, int64_t b0, int n) {
   T* out_ys = in.y[4];
   const int64_t ys_width = in.n[4];
   int64_t saved[W];
-  U next;  // each lane's next save time (inf: none)
-  for (int l = 0; l < W; ++l) saved[l] = 0, next[l] = n_ts > 0 && l < n ? ts[(b0 + l) * ts_stride] : T(INFINITY);
+  U next_save;  // each lane's next save time (inf: none)
+  for (int l = 0; l < W; ++l) saved[l] = 0, next_save[l] = n_ts > 0 && l < n ? ts[(b0 + l) * ts_stride] : T(INFINITY);
   U tprev = t0, tnext = t0 + dt0;
   tnext = tnext < t1 ? tnext : t1;
   U count = U{};
@@ -94,12 +94,12 @@ static void run_block(const Inputs& in, int64_t b0, int n) {
     finite |= frozen;
     // the saves in this step (save_step), where a lane has one due
     if (n_ts > 0) {
-      const I due = active & (next <= tnext);
+      const I due = active & (next_save <= tnext);
       bool any_due = false;
       for (int l = 0; l < n; ++l) any_due |= due[l] != 0;
       if (any_due)
         save_step(qc, vc, wc, qu, vn, wn, k1, k4, tprev, tnext, active, frozen, ts, ts_stride, n_ts, out_ys, ys_width, b0,
-                  n, saved, next);
+                  n, saved, next_save);
     }
     // a lane that is done keeps its state, and so does a frozen one (its time runs on)
     const I moving = active & (frozen == 0);
@@ -119,7 +119,7 @@ static void run_block(const Inputs& in, int64_t b0, int n) {
   for (int i = 0; i < NQ; ++i) st(0, i, qc[i]);
   for (int i = 0; i < NV; ++i) st(1, i, vc[i]);
   for (int j = 0; j < NW; ++j) st(2, j, wc[j]);
-  // the status row of the adaptive solves (jaxbody.backends.native.adaptive.STATUS): every step
+  // the status row of the whole solves (jaxbody.backends.native.solve.STATUS): every step
   // accepted, none rejected; the code 1 for a step that was not finite
   U made;
   for (int l = 0; l < W; ++l) made[l] = T(saved[l < n ? l : 0]);
