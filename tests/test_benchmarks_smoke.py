@@ -282,8 +282,8 @@ def test_saving_benchmark_smoke(tmp_path):
 def test_rk4_saves_benchmark_smoke(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(REPO))
     env.setdefault("XLA_FLAGS", default_xla_flags())
-    cmd = [sys.executable, str(BENCH / "rk4_saves.py"), "--t1", "0.05", "--saves", "7", "--batch", "3", "--repeats", "1",
-           "--out", str(tmp_path)]
+    cmd = [sys.executable, str(BENCH / "rk4_saves.py"), "--t1", "0.05", "--saves", "7", "--batch", "3",
+           "--repeats", "1", "--out", str(tmp_path)]
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env, cwd=REPO)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
     rec = json.loads((tmp_path / "rk4_saves.json").read_text())

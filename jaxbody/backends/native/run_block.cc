@@ -98,8 +98,8 @@ static void run_block(const Inputs& in, int64_t b0, int n) {
       bool any_due = false;
       for (int l = 0; l < n; ++l) any_due |= due[l] != 0;
       if (any_due)
-        save_step(qc, vc, wc, qu, vn, wn, k1, k4, tprev, tnext, active, frozen, ts, ts_stride, n_ts, out_ys, ys_width, b0,
-                  n, saved, next_save);
+        save_step(qc, vc, wc, qu, vn, wn, k1, k4, tprev, tnext, active, frozen, ts, ts_stride, n_ts, out_ys, ys_width,
+                  b0, n, saved, next_save);
     }
     // a lane that is done keeps its state, and so does a frozen one (its time runs on)
     const I moving = active & (frozen == 0);
