@@ -101,7 +101,12 @@ static void vjp_block(const Inputs& in, int64_t b0, int n) {
       const I stepped = (U{} + T(r)) < taken;
       const I active = stepped & (frozen == 0);
       // the saved states' cotangents (a solve without save times: all zero, as set before the sweep)
-      if (n_ts > 0) save_cotangents(row, stepped, frozen, ts, ts_stride, ct_saved, ct_stride, b0, n, l0, l1, sk1, sk4);
+      if (n_ts > 0) {
+        // filled out of line, copied in: the arrays the step's program reads stay the sweep's own
+        V c0[N], c1[N], ck1[N], ck4[N];
+        save_cotangents(row, stepped, frozen, ts, ts_stride, ct_saved, ct_stride, b0, n, c0, c1, ck1, ck4);
+        for (int i = 0; i < N; ++i) l0[i] = c0[i], l1[i] = c1[i], sk1[i] = ck1[i], sk4[i] = ck4[i];
+      }
       // q1 is the renormalised end state; the interpolant reads it before renormalisation
       for (int i = 0; i < NQ; ++i) sq[i] = aq[i], squ[i] = l1[i];
       for (int i = 0; i < NV; ++i) sv[i] = av[i] + l1[NQ + i];
