@@ -131,7 +131,9 @@ def test_native_step_in_float32_stays_near_float64():
 def test_simulate_takes_the_native_step_and_equals_the_vectorised_kernel(monkeypatch):
     """Gravity, springs and dampers (with the dampers' work and dense output at save times),
     single and batched with an invalid member (throw=False), against the vectorised kernel;
-    a scene with a time-dependent torque keeps the four-stage path."""
+    a scene with a time-dependent torque keeps the four-stage path. (Diffrax's loop: the one-call
+    solve, which would otherwise run this solve, is test_simulation_native_solve.py's.)"""
+    monkeypatch.setenv("JAXBODY_NATIVE_SOLVE", "0")
     model = dict(_models())["chain"]
     model = eqx.tree_at(lambda m: (m.joint_stiffness, m.dof_damping), model, (jnp.full(model.joints.n_joint, 2.0), jnp.full(model.nv, 0.3)))
     calls = []

@@ -278,6 +278,25 @@ def test_saving_benchmark_smoke(tmp_path):
     assert "| double_pendulum | n_save=1001 |" in (tmp_path / "rec.md").read_text()
 
 
+@pytest.mark.slow  # compiles the solve, its gradient and a batch, each saving two ways, native and in diffrax's loop
+def test_rk4_saves_benchmark_smoke(tmp_path):
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env.setdefault("XLA_FLAGS", default_xla_flags())
+    cmd = [sys.executable, str(BENCH / "rk4_saves.py"), "--t1", "0.05", "--saves", "7", "--batch", "3",
+           "--repeats", "1", "--out", str(tmp_path)]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env, cwd=REPO)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    rec = json.loads((tmp_path / "rk4_saves.json").read_text())
+    assert rec["stamp"]["commit"] and rec["settings"]["steps"] == 50
+    rows = rec["results"]
+    assert list(rows) == ["7 times", "end state"]
+    for row in rows.values():
+        assert all(row[k][case] > 0 for k in ("native_s", "diffrax_loop_s") for case in ("solve", "gradient", "batch"))
+        # the same steps and dense output: rounding apart
+        assert row["max_state_difference"] < 1e-12 and row["max_relative_gradient_difference"] < 1e-10
+    assert "| 7 times | batch of 3 |" in (tmp_path / "rk4_saves.md").read_text()
+
+
 def test_throughput_rerender_of_the_gpu_record(tmp_path):
     # The GPU record was measured on a lent machine; --rerender re-analyses it here. The
     # GPU targets come out of its numbers, and targets a run did not measure say so.

@@ -1,12 +1,14 @@
 """A whole fixed-step RK4 solve in one native call, and its native reverse sweep.
 
-``jb.simulate(..., solver="rk4", dt0=..., saveat=SaveAt(t1=True))`` on the native kernel runs
-the solve as one call (``jaxbody.backends.native.rk4_rollout``): every field of the solution must equal
-the step-by-step solve through diffrax (``$JAXBODY_NATIVE_SOLVE=0``) and the vectorised
-kernel, including each trajectory's own outcome in a batch (invalid input, a non-finite step,
-the step budget). Gradients with respect to the initial state come from the native reverse
-sweep (``jaxbody.backends.native.rk4_rollout_vjp``, with recomputed segments when the checkpoints do not
-hold every step); every other gradient through the step-by-step solve.
+``jb.simulate(..., solver="rk4", dt0=...)`` on the native kernel, saving the end state and/or
+requested times, runs the solve as one call (``jaxbody.backends.native.rk4_rollout``): every
+field of the solution must equal the step-by-step solve through diffrax
+(``$JAXBODY_NATIVE_SOLVE=0``; the saved states from each step's cubic Hermite dense output) and
+the vectorised kernel, including each trajectory's own outcome in a batch (invalid input, a
+non-finite step, the step budget). Gradients with respect to the initial state come from the
+native reverse sweep (``jaxbody.backends.native.rk4_rollout_vjp``, the saved states' cotangents
+through the dense output, with recomputed segments when the checkpoints do not hold every step);
+every other gradient through the step-by-step solve.
 """
 
 import diffrax
@@ -48,8 +50,14 @@ def _state(model, seed=0):
     return q, jnp.asarray(rng.standard_normal(model.nv))
 
 
-def _solve(scene, q0, v0, t1=0.2, **kw):
-    return jb.simulate(scene, q0, v0, t1, solver="rk4", dt0=1e-2, saveat=diffrax.SaveAt(t1=True), **kw)
+def _solve(scene, q0, v0, t1=0.2, saveat=diffrax.SaveAt(t1=True), **kw):
+    return jb.simulate(scene, q0, v0, t1, solver="rk4", dt0=1e-2, saveat=saveat, **kw)
+
+
+# save times of a solve over [0, 0.2] in steps of 0.01: t0, inside a step, a step's end (saved in
+# the step it ends, from its dense output at θ = 1), a step's end and a time just before it, t1
+_TS = jnp.array([0.0, 0.004, 0.01, 0.01, 0.0999, 0.1, 0.137, 0.2])
+_SAVES = diffrax.SaveAt(ts=_TS, t1=True)
 
 
 def _leaves_close(a, b, tol):
@@ -74,36 +82,42 @@ def _stepped(monkeypatch):
 
 @pytest.mark.parametrize("name", ["chain", "free_ball"])
 def test_native_solve_equals_the_stepped_solve(name, monkeypatch):
-    """Gravity, springs and dampers (with their work): the one-call solve equals diffrax's
-    step-by-step solve on the same kernel (every field of the solution) and the vectorised
-    kernel; inside the jitted program there is no loop left, only the native call."""
+    """Gravity, springs and dampers (with their work), saving at requested times and the end:
+    the one-call solve equals diffrax's step-by-step solve on the same kernel (every field of
+    the solution; the saved states from each step's dense output, at t0, inside steps, at their
+    ends, and, on the free base, the quaternions before their renormalisation as diffrax
+    interpolates them) and the vectorised kernel; inside the jitted program there is no loop
+    left, only the native call."""
     model = _models()[name]
     calls = []
     rollout = native.rk4_rollout
     monkeypatch.setattr(native, "rk4_rollout", lambda *a, **kw: calls.append(1) or rollout(*a, **kw))
     fast = jb.scene(model, kernel="native", planar=False)
     q0, v0 = _state(model)
-    a = _solve(fast, q0, v0)
+    a = _solve(fast, q0, v0, saveat=_SAVES)
     assert calls, "simulate did not take the native solve"
     assert int(a.stats["num_steps"]) == 20 and a.work["dampers"][-1] < 0
-    jaxpr = jax.make_jaxpr(lambda q, v: _solve(fast, q, v, throw=False).q)(q0, v0)
+    assert a.q.shape[0] == _TS.size + 1 and bool(jnp.all(a.t[:-1] == _TS))
+    jaxpr = jax.make_jaxpr(lambda q, v: _solve(fast, q, v, saveat=_SAVES, throw=False).q)(q0, v0)
     assert "while" not in str(jaxpr)
     with pytest.raises(Exception, match="t1 must not be before t0"):  # traced: diffrax raises too
         jax.block_until_ready(jax.jit(lambda t1: _solve(fast, q0, v0, t1, throw=False).q)(jnp.asarray(-0.1)))
 
     _stepped(monkeypatch)
     calls.clear()
-    b = _solve(fast, q0, v0)
+    b = _solve(fast, q0, v0, saveat=_SAVES)
     assert not calls
-    _leaves_close(a, b, 1e-12)
-    c = _solve(jb.scene(model, kernel="vectorised", planar=False), q0, v0)
+    _leaves_close(a, b, 1e-13)
+    c = _solve(jb.scene(model, kernel="vectorised", planar=False), q0, v0, saveat=_SAVES)
     _leaves_close((a.q, a.v, a.work, a.t), (c.q, c.v, c.work, c.t), 1e-10)
 
 
 def test_native_solve_batch_outcomes_equal_the_stepped_solve(monkeypatch):
-    """A vmap batch, each member with its own end time, ``throw=False``: an invalid input (NaN),
-    a member whose steps overflow (non-finite), members the step budget stops, and members that
-    finish: result codes, times, final states and step counts as the step-by-step solve gives them."""
+    """A vmap batch, each member with its own end time and save times (from t0 to its t1),
+    ``throw=False``: an invalid input (NaN: frozen, its saves its state), a member whose steps
+    overflow (non-finite: no saves after that step), members the step budget stops (no saves
+    after it), and members that finish: result codes, times, saved and final states and step
+    counts as the step-by-step solve gives them, in one native call."""
     model = _models()["free_ball"]
     scene = jb.scene(model, kernel="native", planar=False)
     q0, v0 = _state(model)
@@ -114,26 +128,37 @@ def test_native_solve_batch_outcomes_equal_the_stepped_solve(monkeypatch):
     t1s = jnp.linspace(0.05, 0.4, 9)
 
     def run():
-        return jax.jit(jax.vmap(lambda q, v, t1: _solve(scene, q, v, t1, throw=False, max_steps=30)))(qs, vs, t1s)
+        def one(q, v, t1):
+            return _solve(scene, q, v, t1, saveat=jnp.linspace(0.0, 1.0, 6) * t1, throw=False, max_steps=30)
 
+        return jax.jit(jax.vmap(one))(qs, vs, t1s)
+
+    calls = []
+    rollout = native.rk4_rollout
+    monkeypatch.setattr(native, "rk4_rollout", lambda *a, **kw: calls.append(1) or rollout(*a, **kw))
     a = run()
+    assert len(calls) == 1, "the batch did not run as one native call"
     _stepped(monkeypatch)
     b = run()
     codes = a.result._value.tolist()
     R = jb.RESULTS
     assert codes[2] == int(R.invalid_input._value) and codes[4] == int(R.nonfinite._value)
     assert codes[0] == int(R.successful._value) and codes[-1] == int(R.max_steps_reached._value)
-    _leaves_close(a, b, 1e-12)
+    assert bool(jnp.all(jnp.isinf(a.t[-1, -2:]))) and bool(jnp.all(jnp.isfinite(a.q[-1, :-2])))
+    _leaves_close(a, b, 1e-13)
 
 
-def _gradient_setup(name, monkeypatch):
+def _gradient_setup(name, monkeypatch, saveat=diffrax.SaveAt(t1=True)):
     model = _models()[name]
     scene = jb.scene(model, kernel="native", planar=False)
     q0, v0 = _state(model, 2)
 
     def loss(q, v):
-        sol = _solve(scene, q, v)
-        return jnp.sum(jnp.sin(sol.q[-1])) + jnp.sum(sol.v[-1] ** 2) + 3.0 * sol.work["dampers"][-1]
+        # every saved state weighted by its own factor (the end state, the last, the most)
+        sol = _solve(scene, q, v, saveat=saveat)
+        weights = jnp.arange(1.0, sol.q.shape[0] + 1)
+        return (jnp.sum(weights[:, None] * jnp.sin(sol.q)) + jnp.sum(weights[:, None] * sol.v ** 2)
+                + 3.0 * jnp.sum(weights * sol.work["dampers"]))
 
     calls = []
     sweep = native.rk4_rollout_vjp
@@ -142,10 +167,12 @@ def _gradient_setup(name, monkeypatch):
 
 
 def test_native_reverse_sweep_gradient_equals_the_stepped_solve(monkeypatch):
-    """The gradient with respect to (q0, v0), through the native reverse sweep, equals the
-    step-by-step solve's checkpointed adjoint, with a checkpoint per step and with segments
-    recomputed from fewer checkpoints; batched under vmap too."""
-    model, loss, q0, v0, calls = _gradient_setup("chain", monkeypatch)
+    """The gradient with respect to (q0, v0) of the states saved at requested times (through each
+    step's dense output) and at the end, with the dampers' work, through the native reverse
+    sweep, equals the step-by-step solve's checkpointed adjoint, with a checkpoint per step and
+    with segments recomputed from fewer checkpoints (saves on both sides of a segment's start);
+    batched under vmap too."""
+    model, loss, q0, v0, calls = _gradient_setup("chain", monkeypatch, _SAVES)
     grad = lambda: jax.jit(jax.grad(loss, argnums=(0, 1)))(q0, v0)  # noqa: E731
     every_step = grad()
     assert calls, "the gradient did not take the native reverse sweep"
@@ -196,9 +223,11 @@ def test_native_solve_parameter_gradient_goes_step_by_step(monkeypatch):
     monkeypatch.setattr(native, "rk4_rollout_vjp", lambda *a, **kw: calls.append(1) or sweep(*a, **kw))
 
     def loss(mass):
+        # saved times and the end state: diffrax's loop returns the end state among the saved
+        # rows, the native solve as a row of its own (the forward pass gives the native layout)
         m = eqx.tree_at(lambda m: m.body_mass, model, mass)
-        sol = _solve(jb.scene(m, kernel="native", planar=False), q0, v0)
-        return jnp.sum(sol.q[-1] ** 2) + jnp.sum(sol.v[-1] ** 2)
+        sol = _solve(jb.scene(m, kernel="native", planar=False), q0, v0, saveat=_SAVES)
+        return jnp.sum(sol.q ** 2) + jnp.sum(sol.v ** 2) + jnp.sum(sol.v_final)
 
     mass = model.body_mass
     g = jax.jit(jax.grad(loss))(mass)
@@ -212,13 +241,18 @@ def test_native_solve_parameter_gradient_goes_step_by_step(monkeypatch):
 
 
 def test_native_solve_in_float32_stays_near_float64():
-    """The one-call solve in float32 (a float32 model and state) stays within 1e-4 of float64."""
+    """The one-call solve in float32 (a float32 model and state), saving at ``simulate``'s
+    default evenly spaced times, stays within 1e-4 of float64."""
     model = _models()["free_ball"]
     q0, v0 = _state(model, 4)
     m32 = jax.tree.map(lambda x: x.astype(jnp.float32) if jnp.issubdtype(x.dtype, jnp.floating) else x, model)
-    a = _solve(jb.scene(model, kernel="native", planar=False), q0, v0)
-    b = _solve(jb.scene(m32, kernel="native", planar=False), q0.astype(jnp.float32), v0.astype(jnp.float32))
-    assert b.q.dtype == jnp.float32 and bool(b.success)
+
+    def run(scene, q, v):
+        return jb.simulate(scene, q, v, 0.2, solver="rk4", dt0=1e-2, n_save=9)
+
+    a = run(jb.scene(model, kernel="native", planar=False), q0, v0)
+    b = run(jb.scene(m32, kernel="native", planar=False), q0.astype(jnp.float32), v0.astype(jnp.float32))
+    assert b.q.dtype == jnp.float32 and bool(b.success) and b.q.shape == (9, model.nq)
     assert float(jnp.max(jnp.abs(b.q.astype(jnp.float64) - a.q))) <= 1e-4
     assert float(jnp.max(jnp.abs(b.v.astype(jnp.float64) - a.v))) <= 1e-4 * max(1.0, float(jnp.max(jnp.abs(a.v))))
 
@@ -373,7 +407,8 @@ def _torque_scene(nv=3, harmonics=2, seed=3):
 def test_fourier_torque_native_solves_equal_the_stepped_solve(monkeypatch):
     """Gravity, springs, dampers and a Fourier-series torque, evaluated at each stage's time inside
     the one-call programs (from a start time that is not zero: the torque's phase): the RK4 and
-    Dopri5 solves (every field, the torque's work beside the dampers') equal diffrax's loop, whose
+    Dopri5 solves (every field, the states saved at requested times from the steps' dense output,
+    the torque's work beside the dampers') equal diffrax's loop, whose
     RK4 steps are the native step program with the torque (``rk4_step``), and the RK4 solve equals
     the four stages written in JAX on the vectorised kernel. Their gradients:
     :func:`test_fourier_torque_gradients` (slow: the loop's compilation)."""
@@ -385,8 +420,10 @@ def test_fourier_torque_native_solves_equal_the_stepped_solve(monkeypatch):
     q0, v0 = _state(model, 4)
     t0 = 0.35
 
+    saves = diffrax.SaveAt(ts=t0 + jnp.array([0.0, 0.013, 0.05, 0.1]), t1=True)
+
     def run():
-        fixed = _solve(scene, q0, v0, t0 + 0.1, t0=t0)
+        fixed = _solve(scene, q0, v0, t0 + 0.1, t0=t0, saveat=saves)
         adaptive = _adaptive(scene, q0, v0, "dopri5", t0 + 0.2, t0=t0, saveat=diffrax.SaveAt(ts=jnp.linspace(t0, t0 + 0.2, 4)))
         return fixed, adaptive
 
@@ -401,7 +438,8 @@ def test_fourier_torque_native_solves_equal_the_stepped_solve(monkeypatch):
         assert int(adaptive.stats[key]) == int(adaptive_loop.stats[key]), key
     _leaves_close(fixed, fixed_loop, 1e-13)
     _leaves_close(adaptive, adaptive_loop, 1e-12)
-    stages = _solve(jb.scene(model, kernel="vectorised", planar=False, effects=[torque]), q0, v0, t0 + 0.1, t0=t0)
+    stages = _solve(jb.scene(model, kernel="vectorised", planar=False, effects=[torque]), q0, v0, t0 + 0.1, t0=t0,
+                    saveat=saves)
     _leaves_close((fixed.q, fixed.v, fixed.work, fixed.t), (stages.q, stages.v, stages.work, stages.t), 1e-12)
 
 
@@ -445,7 +483,7 @@ def test_fourier_torque_against_mujoco_qfrc_applied(models_dir):
 def test_fourier_torque_gradients(monkeypatch):
     """With a Fourier-series torque, the gradients with respect to the initial state through the
     native reverse sweeps (the torque's stage times recomputed and replayed) equal diffrax's loop:
-    RK4 (the torque's work in the loss) and Dopri5 (states saved inside the steps); the gradient
+    RK4 and Dopri5 (states and both works saved inside the steps in the loss); the gradient
     with respect to the torque's coefficients (diffrax's loop) against central differences."""
     model, scene, torque = _torque_scene()
     q0, v0 = _state(model, 4)
@@ -455,8 +493,12 @@ def test_fourier_torque_gradients(monkeypatch):
         monkeypatch.setattr(native, name, lambda *a, _fn=fn, **kw: calls.append(_fn.__name__) or _fn(*a, **kw))
 
     def fixed(q, v):
-        sol = _solve(scene, q, v, 0.45, t0=0.35, max_steps=20)
-        return jnp.sum(jnp.sin(sol.q[-1])) + jnp.sum(sol.v[-1] ** 2) + 3.0 * sol.work["torque"][-1]
+        # states saved inside the steps, at a step's end and at t1: both works through the dense output
+        saves = diffrax.SaveAt(ts=jnp.array([0.35, 0.383, 0.4, 0.427]), t1=True)
+        sol = _solve(scene, q, v, 0.45, t0=0.35, max_steps=20, saveat=saves)
+        weights = jnp.arange(1.0, 6.0)
+        return (jnp.sum(weights[:, None] * jnp.sin(sol.q)) + jnp.sum(sol.v_final ** 2)
+                + jnp.sum(weights * (3.0 * sol.work["torque"] + sol.work["dampers"])))
 
     def adaptive(q, v, scene=scene):
         sol = _adaptive(scene, q, v, "dopri5", 0.3, t0=0.1, saveat=diffrax.SaveAt(ts=jnp.linspace(0.1, 0.3, 5)),

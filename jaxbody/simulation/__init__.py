@@ -9,13 +9,14 @@ means ``jb.scene(model)``: the model's own gravity, springs and dampers; any oth
 the simulation protocol is wrapped as is). It returns a :class:`Solution` pytree. ``jit``,
 ``vmap`` and ``grad`` (through diffrax's adjoints) pass through.
 
-A fixed-step ``"rk4"`` solve on the native kernel that keeps only its end state
-(``saveat=SaveAt(t1=True)``), of a scene of gravity, joint springs and joint dampers, without
-an event, runs as one native call (:func:`jaxbody.backends.native.rk4_rollout`) instead of diffrax's
-loop. Its solution is the one diffrax's loop gives (the same steps, failures and result codes).
-Its gradient with respect to the initial state is a native reverse sweep
-(:func:`jaxbody.backends.native.rk4_rollout_vjp`); other derivatives go through diffrax's loop.
-``$JAXBODY_NATIVE_SOLVE=0`` turns this off.
+A fixed-step ``"rk4"`` solve (or an adaptive Tsit5, Dopri5 or Dopri8 one) on the native kernel
+that saves its end state and/or requested times (``saveat=ts``, ``n_save``, ``SaveAt(ts=...,
+t1=...)``), of a scene of gravity, joint springs, joint dampers and a Fourier-series joint
+torque, without an event, runs as one native call (:func:`jaxbody.backends.native.rk4_rollout`)
+instead of diffrax's loop. Its solution is the one diffrax's loop gives (the same steps, saved
+states from the same dense output, failures and result codes). Its gradient with respect to the
+initial state is a native reverse sweep (:func:`jaxbody.backends.native.rk4_rollout_vjp`); other
+derivatives go through diffrax's loop. ``$JAXBODY_NATIVE_SOLVE=0`` turns this off.
 
 Errors come in three layers. Shapes, unknown names and impossible options raise ``ValueError``
 before anything is traced. Values (NaN or infinite initial states or parameters, negative

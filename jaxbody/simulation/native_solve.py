@@ -1,18 +1,19 @@
 """The one-call native solves: a whole fixed-step RK4 or adaptive solve as one native program.
 
-A fixed-step ``"rk4"`` solve on the native kernel that keeps only its end state
-(``saveat=SaveAt(t1=True)``), and an adaptive ``"tsit5"``, ``"dopri5"`` or ``"dopri8"`` solve under
-diffrax's ``PIDController`` that saves its end state and/or requested times, of a scene of
-gravity, joint springs, joint dampers and a Fourier-series joint torque, without an event, run as one native call
-(:func:`jaxbody.backends.native.rk4_rollout`, :func:`jaxbody.backends.native.adaptive_solve`) instead of
-diffrax's loop. They apply only there because only there does the native program compute
-exactly what the loop would: the same field (:func:`jaxbody.simulation.field.native_field`), the
-same steps (diffrax's step times; diffrax's tableaux, error estimate, controller and dense
-output), failures and result codes. The gradient with respect to the initial state is a native
-reverse sweep (:func:`jaxbody.backends.native.rk4_rollout_vjp`,
-:func:`jaxbody.backends.native.adaptive_solve_vjp`); any other derivative (the scene's parameters) goes
-through diffrax's loop, which is then run for the
-derivative alone. ``$JAXBODY_NATIVE_SOLVE=0`` turns this off.
+A fixed-step ``"rk4"`` solve on the native kernel, and an adaptive ``"tsit5"``, ``"dopri5"`` or
+``"dopri8"`` solve under diffrax's ``PIDController``, that save their end state and/or requested
+times (``SaveAt(ts=..., t1=...)``, ``simulate``'s default ``n_save`` times among them), of a scene
+of gravity, joint springs, joint dampers and a Fourier-series joint torque, without an event, run
+as one native call (:func:`jaxbody.backends.native.rk4_rollout`,
+:func:`jaxbody.backends.native.adaptive_solve`) instead of diffrax's loop. They apply only there
+because only there does the native program compute exactly what the loop would: the same field
+(:func:`jaxbody.simulation.field.native_field`), the same steps (diffrax's step times;
+diffrax's tableaux, error estimate, controller and dense output, from which the requested times
+are saved), failures and result codes. The gradient with respect to the initial state is a
+native reverse sweep (:func:`jaxbody.backends.native.rk4_rollout_vjp`,
+:func:`jaxbody.backends.native.adaptive_solve_vjp`; the saved states' cotangents through each
+step's dense output); any other derivative (the scene's parameters) goes through diffrax's loop,
+which is then run for the derivative alone. ``$JAXBODY_NATIVE_SOLVE=0`` turns this off.
 """
 
 import os
@@ -74,11 +75,12 @@ def _main_save(saveat):
 
 
 def native_solve_applies(scene, y0, solver, controller, saveat, adjoint, meter, event, dense, slots) -> bool:
-    """Whether a solve can run as one native call: RK4 at constant steps saving the end state
-    alone (:func:`jaxbody.backends.native.rk4_rollout`), or an embedded pair under PID control saving
-    the end state and/or requested times (:func:`jaxbody.backends.native.adaptive_solve`), on a scene whose
-    field the native programs compute (:func:`jaxbody.simulation.field.native_field`), without an
-    event, dense output or progress meter, under an adjoint that differentiates in reverse mode."""
+    """Whether a solve can run as one native call: RK4 at constant steps
+    (:func:`jaxbody.backends.native.rk4_rollout`) or an embedded pair under PID control
+    (:func:`jaxbody.backends.native.adaptive_solve`) saving the end state and/or requested times
+    (a 1-D ``ts``), on a scene whose field the native programs compute
+    (:func:`jaxbody.simulation.field.native_field`), without an event, dense output or progress
+    meter, under an adjoint that differentiates in reverse mode."""
     method = native_method(solver, controller)
     if method is None or event is not None or dense:
         return False
@@ -88,9 +90,7 @@ def native_solve_applies(scene, y0, solver, controller, saveat, adjoint, meter, 
     main = _main_save(saveat)
     if not isinstance(main, diffrax.SubSaveAt) or main.t0 or main.steps or main.fn is not _SAVE_STATE:
         return False
-    if method == "rk4" and (not main.t1 or main.ts is not None):
-        return False
-    if method != "rk4" and (main.ts is None and not main.t1 or main.ts is not None and jnp.ndim(main.ts) != 1):
+    if main.ts is None and not main.t1 or main.ts is not None and jnp.ndim(main.ts) != 1:
         return False
     plan = native_field(scene, y0, slots, timed=True)
     if plan is None:
@@ -142,26 +142,13 @@ def _forward_in_time(t0, t1, dt0):
     return eqx.error_if(t1, (t1 - t0) * dt0 < 0, "simulate: t1 must not be before t0 (a fixed-step solve runs forward)")
 
 
-def _native_outputs(y0, t1, layout, q, v, w, t, steps, failed) -> tuple:
-    """:func:`jaxbody.simulation.solve.integrate`'s outputs for a solve that saves the end state
-    alone, from the native solve's results."""
-    dtype = y0[0].dtype
-    ys = (q[None], v[None]) + ((_work_vector(y0[2], layout, jnp.atleast_1d(w))[None],) if len(y0) == 3 else ())
-    ts = t.astype(dtype)[None]
-    stats = {"num_steps": steps, "num_accepted_steps": steps, "num_rejected_steps": jnp.asarray(0)}  # as diffrax gives it
-    # the codes diffrax's loop would give: stopping short of t1 means the step budget ran out
-    result = RESULTS.where(t < t1, RESULTS.max_steps_reached, RESULTS.successful)
-    result = RESULTS.where(failed, RESULTS.nonfinite, result)
-    return ts, ys, ts, ys, stats, result
-
-
-def native_solve(scene, y0, t0, t1, dt0, valid, max_steps, slots):
-    """The solve of :func:`jaxbody.simulation.solve.integrate` as one native call per batch
-    (:func:`jaxbody.backends.native.rk4_rollout`): ``(ts, ys, tf, yf, stats, result)``."""
+def native_solve(scene, y0, t0, t1, dt0, valid, max_steps, slots, saveat):
+    """The solve of :func:`jaxbody.simulation.solve.integrate` by RK4 at constant steps as one
+    native call per batch (:func:`jaxbody.backends.native.rk4_rollout`): ``(ts, ys, tf, yf, stats, result)``."""
     model, kwargs, layout = _native_arguments(scene, y0, valid, slots)
     t1 = _forward_in_time(t0, t1, dt0)
-    out = native.rk4_rollout(model, y0[0], y0[1], t0, t1, dt0, max_steps, **kwargs)
-    return _native_outputs(y0, t1, layout, *out)
+    out = native.rk4_rollout(model, y0[0], y0[1], t0, t1, dt0, max_steps, ts=_main_save(saveat).ts, **kwargs)
+    return _saved_outputs(y0, t1, saveat, layout, *out, fixed=True)
 
 
 def _adaptive_arguments(scene, y0, valid, slots, controller):
@@ -170,9 +157,12 @@ def _adaptive_arguments(scene, y0, valid, slots, controller):
     return model, kwargs, layout
 
 
-def _adaptive_outputs(y0, t1, saveat, layout, q, v, w, status, saved) -> tuple:
-    """:func:`jaxbody.simulation.solve.integrate`'s outputs from the adaptive program's: the
-    requested times (unsaved ones ``inf``, as diffrax pads them) and/or the end state."""
+def _saved_outputs(y0, t1, saveat, layout, q, v, w, status, saved, fixed=False) -> tuple:
+    """:func:`jaxbody.simulation.solve.integrate`'s outputs from a native solve's
+    (:data:`jaxbody.backends.native.solve.STATUS`): the requested times (unsaved ones ``inf``,
+    as diffrax pads them) and/or the end state; the works the program does not carry keep their
+    initial value. ``fixed``: a fixed-step solve, whose step counts the loop gives as its failure
+    record counts them."""
     dtype = y0[0].dtype
     main = _main_save(saveat)
     nq, nv = y0[0].shape[0], y0[1].shape[0]
@@ -180,7 +170,7 @@ def _adaptive_outputs(y0, t1, saveat, layout, q, v, w, status, saved) -> tuple:
     def state(rows):
         if len(y0) == 2:
             return rows[:, :nq], rows[:, nq : nq + nv]
-        works = _work_vector(jnp.zeros((rows.shape[0], y0[2].shape[0]), dtype), layout, rows[:, nq + nv :])
+        works = _work_vector(jnp.broadcast_to(y0[2], (rows.shape[0],) + y0[2].shape), layout, rows[:, nq + nv :])
         return rows[:, :nq], rows[:, nq : nq + nv], works
 
     final = jnp.concatenate([q, v, jnp.atleast_1d(w)])[None]
@@ -194,9 +184,13 @@ def _adaptive_outputs(y0, t1, saveat, layout, q, v, w, status, saved) -> tuple:
         if main.t1:
             ts, rows = jnp.concatenate([ts, tf]), jnp.concatenate([saved, final])
         ys = state(rows)
-    count = jnp.result_type(int)  # diffrax's counters
-    stats = {"num_steps": status[1].astype(count), "num_accepted_steps": status[2].astype(count),
-             "num_rejected_steps": status[3].astype(count)}
+    if fixed:  # the failure record's counts (solvers.Failure), none rejected
+        steps = status[1].astype(jnp.int32)
+        stats = {"num_steps": steps, "num_accepted_steps": steps, "num_rejected_steps": jnp.asarray(0)}
+    else:
+        count = jnp.result_type(int)  # diffrax's counters
+        stats = {"num_steps": status[1].astype(count), "num_accepted_steps": status[2].astype(count),
+                 "num_rejected_steps": status[3].astype(count)}
     code = status[4]
     result = RESULTS.where(tf[0] < t1, RESULTS.max_steps_reached, RESULTS.successful)
     result = RESULTS.where(code == 2, RESULTS.dt_min_reached, result)
@@ -211,14 +205,45 @@ def native_adaptive_solve(scene, y0, t0, t1, dt0, valid, max_steps, slots, metho
     t1 = _forward_in_time(t0, t1, 1.0)
     ts = _main_save(saveat).ts
     out = native.adaptive_solve(model, method, y0[0], y0[1], t0, t1, dt0=dt0, max_steps=max_steps, ts=ts, **kwargs)
-    return _adaptive_outputs(y0, t1, saveat, layout, *out)
+    return _saved_outputs(y0, t1, saveat, layout, *out)
 
 
-def native_adaptive_reverse(adjoint, max_steps, slots, y0, method):
-    """``(forward, backward)`` of :func:`native_or_stepped` for an adaptive solve by the native
-    reverse sweep (:func:`jaxbody.backends.native.adaptive_solve_vjp`; the saved states' cotangents
-    through each step's dense output), its checkpoints planned as :func:`native_reverse` plans
-    them; ``None`` without a bounded step budget (diffrax's loop differentiates)."""
+def _saved_cotangents(saveat, layout, y0, cotangents) -> tuple:
+    """The cotangents of ``(ts, ys, tf, yf, ...)`` as a native reverse sweep takes them: those of
+    the final state ``[q, v, w]`` (the end state's saved point added where it is one) and of the
+    saved states, ``(n_ts, nq + nv + works)`` rows in the program's layout (``None`` without
+    ``ts``)."""
+    main = _main_save(saveat)
+    _, ys, _, yf, _, _ = cotangents
+    ys = [_instantiate(a) for a in ys]
+    ct = [_instantiate(b)[0] for b in yf]
+    if main.ts is None:
+        return [a[0] + b for a, b in zip(ys, ct)], None, None  # the end state is the saved point
+    if main.t1:  # the end state saved after the requested times
+        ct = [a[-1] + b for a, b in zip(ys, ct)]
+        ys = [a[:-1] for a in ys]
+    zeros = jnp.zeros((ys[0].shape[0],), ys[0].dtype)
+    works = [ys[2][:, s] if s is not None else zeros for s in layout]
+    return ct, jnp.concatenate(list(ys[:2]) + [jnp.stack(works, axis=1)], axis=1), ys[2] if len(y0) == 3 else None
+
+
+def _initial_work_cotangent(y0, layout, ct_final, ct_saved_works, status, ct_w):
+    """The cotangent of the initial work vector: the native sweep's ``ct_w`` for the works the
+    program carries; a work it does not carry stays at its initial value, in the end state and
+    in every state saved (``ct_saved_works``, rows past the saves made never reached)."""
+    total = ct_final
+    if ct_saved_works is not None:
+        made = jnp.arange(ct_saved_works.shape[0], dtype=status.dtype) < status[5]
+        total = total + jnp.sum(jnp.where(made[:, None], ct_saved_works, 0.0), axis=0)
+    return _work_vector(total.astype(y0[2].dtype), layout, jnp.atleast_1d(ct_w))
+
+
+def _native_reverse(adjoint, max_steps, slots, y0, method):
+    """``(forward, backward)`` of :func:`native_or_stepped` by the native reverse sweep of
+    ``method`` (``"rk4"`` or an embedded pair), its checkpoints as many as the checkpointed
+    ``adjoint`` would keep (default: :func:`default_checkpoints`, within its memory budget);
+    ``None`` without a bounded step budget (diffrax's loop differentiates: the sweep's
+    checkpoint memory is planned over the budget)."""
     if max_steps is None:
         return None
     checkpoints = adjoint.checkpoints
@@ -226,46 +251,57 @@ def native_adaptive_reverse(adjoint, max_steps, slots, y0, method):
         checkpoints = default_checkpoints(max_steps, y0[0].size + y0[1].size, y0[0].dtype.itemsize)
     held = []
 
-    def forward(rest, y0):
+    def arguments(rest, y0):
         scene, t0, t1, dt0, valid, _, controller, _, saveat = rest
-        main = _main_save(saveat)
-        model, kwargs, layout = _adaptive_arguments(scene, y0, valid, slots, controller)
-        t1 = _forward_in_time(t0, t1, 1.0)
-        *out, saved = native.adaptive_solve(model, method, y0[0], y0[1], t0, t1, dt0=dt0, max_steps=max_steps,
-                                            ts=main.ts, checkpoints=checkpoints, **kwargs)
+        if method == "rk4":
+            model, kwargs, layout = _native_arguments(scene, y0, valid, slots)
+            times = (t0, _forward_in_time(t0, t1, dt0), dt0, max_steps)
+        else:
+            model, kwargs, layout = _adaptive_arguments(scene, y0, valid, slots, controller)
+            times = (t0, _forward_in_time(t0, t1, 1.0))
+            kwargs.update(dt0=dt0, max_steps=max_steps)
+        return model, kwargs, layout, times, saveat
+
+    def forward(rest, y0):
+        model, kwargs, layout, times, saveat = arguments(rest, y0)
+        ts = _main_save(saveat).ts
+        if method == "rk4":
+            *out, saved = native.rk4_rollout_checkpointed(model, y0[0], y0[1], *times, checkpoints, ts=ts, **kwargs)
+        else:
+            *out, saved = native.adaptive_solve(model, method, y0[0], y0[1], *times, ts=ts, checkpoints=checkpoints,
+                                                **kwargs)
         # residuals are arrays: the rest (the controller's norm, the solver) is held here
         dynamic, static = eqx.partition(rest, eqx.is_array)
         held.append(static)
-        return _adaptive_outputs(y0, t1, saveat, layout, *out), (dynamic, y0, saved, out[3])
+        return _saved_outputs(y0, times[1], saveat, layout, *out, fixed=method == "rk4"), (dynamic, y0, saved, out[3])
 
     def backward(residuals, cotangents):
         dynamic, y0, saved, status = residuals
-        scene, t0, t1, dt0, valid, _, controller, _, saveat = eqx.combine(dynamic, held[-1])
-        main = _main_save(saveat)
-        model, kwargs, layout = _adaptive_arguments(scene, y0, valid, slots, controller)
-        _, ys, _, yf, _, _ = cotangents
-        ys = [_instantiate(a) for a in ys]
-        ct = [_instantiate(b)[0] for b in yf]
-        ct_saved = None
-        if main.ts is None:
-            ct = [a[0] + b for a, b in zip(ys, ct)]  # the end state is the saved point
-        else:
-            if main.t1:  # the end state saved after the requested times
-                ct = [a[-1] + b for a, b in zip(ys, ct)]
-                ys = [a[:-1] for a in ys]
-            zeros = jnp.zeros((ys[0].shape[0],), ys[0].dtype)
-            works = [ys[2][:, s] if s is not None else zeros for s in layout]
-            ct_saved = jnp.concatenate(list(ys[:2]) + [jnp.stack(works, axis=1)], axis=1)
+        rest = eqx.combine(dynamic, held[-1])
+        model, kwargs, layout, times, saveat = arguments(rest, y0)
+        ct, ct_saved, ct_saved_works = _saved_cotangents(saveat, layout, y0, cotangents)
         work = _works(ct[2], layout, y0[0].dtype) if len(y0) == 3 else 0.0
-        ct_q, ct_v, ct_w = native.adaptive_solve_vjp(model, method, y0[0], y0[1], t0, t1, dt0=dt0, max_steps=max_steps,
-                                                     checkpoints=checkpoints, saved=saved, status=status,
-                                                     cotangent_q=ct[0], cotangent_v=ct[1], cotangent_work=work,
-                                                     ts=main.ts, cotangent_saved=ct_saved, **kwargs)
+        common = dict(saved=saved, status=status, cotangent_q=ct[0], cotangent_v=ct[1], cotangent_work=work,
+                      ts=_main_save(saveat).ts, cotangent_saved=ct_saved)
+        if method == "rk4":
+            kwargs.pop("work0")
+            ct_q, ct_v, ct_w = native.rk4_rollout_vjp(model, y0[0], y0[1], *times, checkpoints, **common, **kwargs)
+        else:
+            ct_q, ct_v, ct_w = native.adaptive_solve_vjp(model, method, y0[0], y0[1], *times, checkpoints=checkpoints,
+                                                         **common, **kwargs)
         if len(y0) == 2:
             return ct_q, ct_v
-        return ct_q, ct_v, _work_vector(jnp.zeros_like(y0[2]), layout, jnp.atleast_1d(ct_w))
+        return ct_q, ct_v, _initial_work_cotangent(y0, layout, ct[2], ct_saved_works, status, ct_w)
 
     return forward, backward
+
+
+def native_adaptive_reverse(adjoint, max_steps, slots, y0, method):
+    """``(forward, backward)`` of :func:`native_or_stepped` for an adaptive solve by the native
+    reverse sweep (:func:`jaxbody.backends.native.adaptive_solve_vjp`; the saved states'
+    cotangents through each step's dense output), its checkpoints planned as
+    :func:`native_reverse` plans them; ``None`` without a bounded step budget."""
+    return _native_reverse(adjoint, max_steps, slots, y0, method)
 
 
 def _instantiate(cotangent):
@@ -273,6 +309,14 @@ def _instantiate(cotangent):
     if isinstance(cotangent, SymbolicZero):
         return jnp.zeros(cotangent.aval.shape, cotangent.aval.dtype)
     return cotangent
+
+
+def _final_row(outputs):
+    """``(ts, ys, tf, yf, stats, result)`` with the final time and state as one row, as the native
+    solves give them: where diffrax's loop saves the end state among the requested times it
+    returns every saved row for them too, its last the final one."""
+    ts, ys, tf, yf, stats, result = outputs
+    return ts, ys, tf[-1:], tuple(a[-1:] for a in yf), stats, result
 
 
 def native_or_stepped(rest, y0, native, stepped, reverse):
@@ -297,7 +341,7 @@ def native_or_stepped(rest, y0, native, stepped, reverse):
         if reverse is not None and not any(p.perturbed for p in jax.tree.leaves(dynamic)):
             out, residuals = reverse[0](eqx.combine(values, static), y0_values)
             return out, (None, residuals)
-        out, pullback = jax.vjp(lambda d, y: stepped(eqx.combine(d, static), y), values, y0_values)
+        out, pullback = jax.vjp(lambda d, y: _final_row(stepped(eqx.combine(d, static), y)), values, y0_values)
         return out, (pullback, None)
 
     def backward(residuals, cotangents):
@@ -312,34 +356,9 @@ def native_or_stepped(rest, y0, native, stepped, reverse):
 
 
 def native_reverse(adjoint, max_steps, slots, y0):
-    """``(forward, backward)`` of :func:`native_or_stepped` by the native reverse sweep
-    (:func:`jaxbody.backends.native.rk4_rollout_vjp`): the solve keeps as many checkpoints as the
+    """``(forward, backward)`` of :func:`native_or_stepped` for an RK4 solve at constant steps by
+    the native reverse sweep (:func:`jaxbody.backends.native.rk4_rollout_vjp`; the saved states'
+    cotangents through each step's dense output): the solve keeps as many checkpoints as the
     checkpointed ``adjoint`` would (default: :func:`default_checkpoints`, within its memory
     budget); ``None`` without a bounded step budget."""
-    # the sweep's checkpoint memory is planned over the step budget: without one, diffrax's loop
-    if max_steps is None:
-        return None
-    checkpoints = adjoint.checkpoints
-    if checkpoints is None:
-        checkpoints = default_checkpoints(max_steps, y0[0].size + y0[1].size, y0[0].dtype.itemsize)
-
-    def forward(rest, y0):
-        scene, t0, t1, dt0, valid = rest[:5]
-        model, kwargs, layout = _native_arguments(scene, y0, valid, slots)
-        t1 = _forward_in_time(t0, t1, dt0)
-        *out, saved = native.rk4_rollout_checkpointed(model, y0[0], y0[1], t0, t1, dt0, max_steps, checkpoints, **kwargs)
-        return _native_outputs(y0, t1, layout, *out), (rest[:5], y0, saved, out[4])
-
-    def backward(residuals, cotangents):
-        (scene, t0, t1, dt0, valid, *_), y0, saved, steps = residuals
-        _, ys, _, yf, _, _ = cotangents
-        # the end state is both the saved point and the final state
-        ct = [_instantiate(a)[0] + _instantiate(b)[0] for a, b in zip(ys, yf)]
-        model, kwargs, layout = _native_arguments(scene, y0, valid, slots)
-        work = _works(ct[2], layout, y0[0].dtype) if len(y0) == 3 else 0.0
-        kwargs.pop("work0")
-        ct_q, ct_v = native.rk4_rollout_vjp(model, y0[0], y0[1], t0, t1, dt0, max_steps, checkpoints, saved, steps, ct[0],
-                                     ct[1], work, **kwargs)
-        return (ct_q, ct_v) + ((ct[2],) if len(y0) == 3 else ())
-
-    return forward, backward
+    return _native_reverse(adjoint, max_steps, slots, y0, "rk4")

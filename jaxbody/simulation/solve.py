@@ -312,7 +312,7 @@ def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps,
         def native(rest, y0):
             scene, t0, t1, dt0, valid, _, controller, _, saveat = rest
             if method == "rk4":
-                return native_solve(scene, y0, t0, t1, dt0, valid, max_steps, slots)
+                return native_solve(scene, y0, t0, t1, dt0, valid, max_steps, slots, saveat)
             return native_adaptive_solve(scene, y0, t0, t1, dt0, valid, max_steps, slots, method, controller, saveat)
 
         rest = (scene, t0, t1, dt0, valid, solver, controller, adjoint, saveat)

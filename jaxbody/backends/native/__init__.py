@@ -47,10 +47,12 @@ How it plugs into JAX:
 * **Whole solves.** A fixed-step RK4 solve is one program too (:func:`rk4_rollout`, mode
   ``"rk4_run"``): each block of states is loaded once and carried in registers through every
   step (each lane with its own times, step count and failure flag), with diffrax's step times,
-  the quaternions renormalised after each step. Its reverse sweep (:func:`rk4_rollout_vjp`,
+  the quaternions renormalised after each step, requested times saved from each step's cubic
+  Hermite dense output as diffrax saves them. Its reverse sweep (:func:`rk4_rollout_vjp`,
   ``"rk4_run_vjp"``) recomputes the steps between checkpoints that the forward call wrote and
-  runs the reverse-mode program of each step, last first: the gradient with respect to the
-  initial state. :func:`jaxbody.simulate` takes both where a solve keeps only its end state.
+  runs the reverse-mode program of each step, last first, the saved states' cotangents entering
+  through the dense output: the gradient with respect to the initial state.
+  :func:`jaxbody.simulate` takes both where a solve saves its end state and/or requested times.
   An adaptive solve by an embedded pair (Tsit5, Dopri5, Dopri8: :func:`adaptive_solve`, modes
   ``"adaptive:<method>"``) is one program as well: the field generated once, the stages looped
   over diffrax's tableau, diffrax's PID step-size control and dense output per lane; its reverse

@@ -15,16 +15,11 @@ from ..._types import Array, ArrayLike, Float
 from ...model import Model
 from .build import compiled_kernel
 from .rk4 import work_count
-from .solve import torque_operand, work_row
+from .solve import STATUS, saved_rows, torque_operand, work_row
 from .symbolic import parameter_vector
 from .tableaux import METHODS
 
 __all__ = ["Control", "adaptive_solve", "adaptive_solve_vjp", "adaptive_checkpoint_layout", "STATUS"]
-
-#: The columns of the status row: the time reached, steps attempted, accepted, rejected, the
-#: result code (0 success, 1 a kept step not finite, 2 ``dtmin`` reached without ``force_dtmin``)
-#: and the number of saved states.
-STATUS = ("t", "num_steps", "num_accepted_steps", "num_rejected_steps", "code", "saved")
 
 
 class Control:
@@ -164,8 +159,7 @@ def adaptive_solve(
     widths = kernel.widths + (max(n_ts * n, 1),) + ((width,) if checkpoints is not None else ())
     outs = kernel.batched_with(widths)(*rows)
     q1, v1, w1, status, ys = (o[0] for o in outs[:5])
-    saved = jnp.where(jnp.arange(n_ts, dtype=status.dtype)[:, None] < status[5], ys[: n_ts * n].reshape(n_ts, n), jnp.inf)
-    result = (q1, v1, w1[0] if w1.shape[0] == 1 else w1, status, saved)
+    result = (q1, v1, w1[0] if w1.shape[0] == 1 else w1, status, saved_rows(ys, status, n_ts, n))
     return result + ((outs[5][0],) if checkpoints is not None else ())
 
 

@@ -1,6 +1,6 @@
 """C++ code generation of the native kernel: the programs of every mode from the traced tree.
 
-The templates (``common.h``, ``kernel.cc``, ``access.h``, ``run_block.cc``,
+The templates (``common.h``, ``kernel.cc``, ``access.h``, ``hermite.h``, ``run_block.cc``,
 ``run_vjp_block.cc``, ``handler.cc``) are package data next to this module; the generated
 lines of one tree fill their ``@…@`` slots.
 """
@@ -58,8 +58,8 @@ def result_widths(joints, mode: str, harmonics=None) -> tuple:
         "rk4_jvp": (nq, nv, nq, nv, nq, nv, 3),
         "rk4_vjp": (nq, nv, nv),
         "energy": (3,),
-        "rk4_run": (nq, nv, nw, 3),
-        "rk4_run_vjp": (nq, nv),
+        "rk4_run": (nq, nv, nw, 6),  # then the saved states and the checkpoints, sized per call
+        "rk4_run_vjp": (nq, nv, nw),
     }[mode]
 
 
@@ -86,19 +86,29 @@ _ACCESS = _template("access.h")
 # clip to t1, the quaternion renormalisation after each step and the hold of a trajectory at
 # its first non-finite step are those of jaxbody.simulation's fixed-step solve (diffrax's
 # ConstantStepSize): t_k = t0 + (t1 - t0) * (k / N), t_N = t1, a time within 100 ulp below t1
-# rounded to t1. Operands: q, v, f, p, g, ext, k, r, d, the work w0 and the schedule (t0, t1, N,
-# t1 - 100 ulp, the step budget, dt0, frozen, steps per checkpoint); results: q, v, w, (t reached,
-# steps, failed) and, when asked for, the checkpoints of the reverse sweep (_RUN_VJP_BLOCK). A
-# frozen lane (an input that failed simulate's checks) takes its steps without moving.
+# rounded to t1. Operands: q, v, f, p, g, ext, k, r, d, the work w0, the schedule (t0, t1, N,
+# t1 - 100 ulp, the step budget, dt0, frozen, steps per checkpoint, number of save times) and the
+# save times; results: q, v, w, the status (jaxbody.backends.native.solve.STATUS: t reached,
+# steps, accepted, rejected, result code, saves), the saved states (each from the dense output of
+# the step that covers its time, _HERMITE) and, when asked for, the checkpoints of the reverse
+# sweep (_RUN_VJP_BLOCK). A frozen lane (an input that failed simulate's checks) takes its steps
+# without moving.
 _RUN_BLOCK = _template("run_block.cc")
+
+# The dense output of an RK4 step (diffrax's cubic Hermite interpolant) and its derivatives,
+# which the whole solve and its reverse sweep share
+_HERMITE = _template("hermite.h")
 
 # The reverse sweep of a whole solve (reverse mode with respect to the initial state): for each
 # segment of `every` steps, last first, the steps are recomputed from the segment's checkpoint
 # (the forward program, so the same states) and kept; then the reverse-mode program of one step
-# carries the cotangents of (q, v) back through them, the work's cotangent held (w1 = w0 + Δw).
-# A lane's own steps are those it took (a frozen lane: none). Operands: those of _RUN_BLOCK, then
-# the checkpoints, the forward's status, and the cotangents of the final q, v and w; results:
-# the cotangents of the initial q and v.
+# carries the cotangents of (q, v) back through them, the work's cotangent held (w1 = w0 + Δw);
+# the cotangents of the states saved in a step enter its reverse-mode program through the dense
+# output (its stage increments and its end state before renormalisation). A lane's own steps are
+# those it took (a frozen lane: none; its saves pass their cotangents to its state). Operands:
+# those of _RUN_BLOCK but the save times, then the checkpoints, the forward's status, the
+# cotangents of the final q, v and w, the save times and the cotangents of the saved states;
+# results: the cotangents of the initial q, v and w.
 _RUN_VJP_BLOCK = _template("run_vjp_block.cc")
 
 #: The XLA FFI handler, one per dtype: a thread pool that runs a program over a batch.
@@ -289,20 +299,23 @@ def _stage_field(em: Emitter, joints, operands, q: list, v: list, t, derivative=
 def _run_step(em: Emitter, joints, operands, q: list, v: list, h, derivative=None, t0=None, t1=None) -> tuple:
     """One step of a whole solve on symbolic scalars from ``t0`` to ``t1``: the RK4 step of
     :func:`rk4_scalars`, then the quaternions of ball and free joints renormalised (``q /
-    sqrt(|q|²)``, as :func:`jaxbody.kinematics.normalize_qpos`). Returns ``(q1, v1, Δw)``, ``Δw``
-    the list of works' increments."""
+    sqrt(|q|²)``, as :func:`jaxbody.kinematics.normalize_qpos`). Returns ``(q1, v1, Δw, dense)``,
+    ``Δw`` the list of works' increments and ``dense`` what the step's dense output reads:
+    ``(k1, k4, q1 before renormalisation)``, ``k1`` and ``k4`` the first and last stage increments
+    of the whole state ``(q, v, w)`` (diffrax interpolates a step's unrenormalised end state)."""
 
     def field(q, v, t):
         return _stage_field(em, joints, operands, q, v, t, derivative)
 
-    q1, v1, _, _, _, _, work = rk4_scalars(field, joints, q, v, h, t0, t1)
+    q1, v1, k1q, k1v, k4q, k4v, work = rk4_scalars(field, joints, q, v, h, t0, t1)
+    dense = (list(k1q) + list(k1v) + list(work[1]), list(k4q) + list(k4v) + list(work[2]), list(q1))
     q1 = list(q1)
     for block in _quaternion_coordinates(joints):
         squares = [q1[i] * q1[i] for i in block]
         inverse = 1.0 / sym_sqrt(squares[0] + squares[1] + squares[2] + squares[3])
         for i in block:
             q1[i] = q1[i] * inverse
-    return q1, list(v1), work[0]
+    return q1, list(v1), work[0], dense
 
 
 def _symbol_value(x) -> str:
@@ -316,8 +329,9 @@ def _hoisted(lines: list) -> list:
 
 def _run_program(tree, joints, derivative=None, harmonics=None) -> tuple:
     """One step of a whole solve on the carried state ``qc``, ``vc`` from ``tprev`` to ``tnext``
-    (:func:`_run_step`): ``(emitter, operand loads, step lines, (q, v), (q1, v1, Δw))``, the step
-    lines ending in the stores of ``q1``, ``v1`` to ``qn``, ``vn``."""
+    (:func:`_run_step`): ``(emitter, operand loads, step lines, (q, v), (q1, v1, Δw), dense)``, the
+    step lines ending in the stores of ``q1``, ``v1`` to ``qn``, ``vn``; ``dense``: the symbols
+    of :func:`_run_step`'s dense output."""
     em = Emitter()
     operands = _run_operands(em, tree, joints, harmonics)
     invariant = len(em.lines)
@@ -325,34 +339,42 @@ def _run_program(tree, joints, derivative=None, harmonics=None) -> tuple:
     v = _carried(em, "v", joints.nv, "vc")
     # the step's times enter only a field that depends on time (the torque's)
     times = (Sym("tprev", em), Sym("tnext", em)) if harmonics is not None else (None, None)
-    q1, v1, dw = _run_step(em, joints, operands, q, v, Sym("h", em), derivative, *times)
+    q1, v1, dw, dense = _run_step(em, joints, operands, q, v, Sym("h", em), derivative, *times)
     step = em.lines[invariant:]
     step += [f"qn[{i}] = {_symbol_value(x)};" for i, x in enumerate(q1)]
     step += [f"vn[{i}] = {_symbol_value(x)};" for i, x in enumerate(v1)]
-    return em, em.lines[:invariant], step, (q, v), (q1, v1, dw)
+    return em, em.lines[:invariant], step, (q, v), (q1, v1, dw), dense
 
 
 def generate_run(tree, joints, dtype, harmonics=None) -> str:
     """C++ source of a whole fixed-step RK4 solve (``"rk4_run"``, :data:`_RUN_BLOCK`): the
-    step of :func:`_run_step` on the carried state, the operands loaded before the loop;
+    step of :func:`_run_step` on the carried state, the operands loaded before the loop, and
+    what the step's dense output reads stored in ``k1``, ``k4`` (first and last stage increments
+    of ``(q, v, w)``) and ``qu`` (``q1`` before renormalisation) for the saves inside the step;
     ``harmonics``: that of a Fourier-series joint torque (``None``: none)."""
-    _, invariant, step, _, (_, _, dw) = _run_program(tree, joints, harmonics=harmonics)
+    _, invariant, step, _, (_, _, dw), (k1, k4, qu) = _run_program(tree, joints, harmonics=harmonics)
     body = step + [f"dw[{j}] = {_symbol_value(x)};" for j, x in enumerate(dw)]
+    # stored only by a solve that saves at requested times (n_ts > 0): a solve that keeps its end
+    # state alone stores nothing more than it did without them
+    dense = [f"  {name}[{i}] = {_symbol_value(x)};" for name, xs in (("k1", k1), ("k4", k4), ("qu", qu))
+             for i, x in enumerate(xs)]
+    body += ["if (n_ts > 0) {"] + dense + ["}"]
     return _run_source(_RUN_BLOCK, invariant, {"BODY": body}, joints, dtype, harmonics)
 
 
 def generate_run_vjp(tree, joints, dtype, harmonics=None) -> str:
     """C++ source of the reverse sweep of a whole solve (``"rk4_run_vjp"``, :data:`_RUN_VJP_BLOCK`):
     the same steps recomputed from the checkpoints, and the reverse-mode program of
-    :func:`_run_step` (cotangents of ``(q1, v1, Δw)`` to those of ``(q, v)``) on a kept state
-    (``bq``, ``bv``) and its times."""
-    _, invariant, step, _, _ = _run_program(tree, joints, harmonics=harmonics)
-    rev, _, _, (q, v), (q1, v1, dw) = _run_program(tree, joints, derivative="vjp", harmonics=harmonics)
+    :func:`_run_step` on a kept state (``bq``, ``bv``) and its times: the cotangents of ``(q, v)``
+    for those of ``q1`` (``sq``), ``v1`` (``sv``), ``Δw`` (``sw``) and of the step's dense output
+    (``sk1``, ``sk4``: its stage increments, ``squ``: ``q1`` before renormalisation)."""
+    _, invariant, step, _, _, _ = _run_program(tree, joints, harmonics=harmonics)
+    rev, _, _, (q, v), (q1, v1, dw), (k1, k4, qu) = _run_program(tree, joints, derivative="vjp", harmonics=harmonics)
     primal = list(rev.ops)
-    cq = _carried(rev, "cq", joints.nq, "aq")
-    cv = _carried(rev, "cv", joints.nv, "av")
-    cw = _carried(rev, "cw", len(dw), "aw")
-    pairs = list(zip(q1, cq)) + list(zip(v1, cv)) + [(x, c) for x, c in zip(dw, cw) if isinstance(x, Sym)]
+    pairs = []
+    for name, xs in (("sq", q1), ("sv", v1), ("sw", dw), ("sk1", k1), ("sk4", k4), ("squ", qu)):
+        cts = _carried(rev, name, len(xs), name)
+        pairs += [(x, c) for x, c in zip(xs, cts) if isinstance(x, Sym)]
     adj = adjoint_program(primal, active_values(primal, {"q", "v"}), pairs)
     # the kept state's reads, then the step's operations and their adjoints
     body = [f"const U q_{i} = bq[{i}];" for i in range(joints.nq)] + [f"const U v_{i} = bv[{i}];" for i in range(joints.nv)]
@@ -363,7 +385,8 @@ def generate_run_vjp(tree, joints, dtype, harmonics=None) -> str:
 
 
 def _run_source(block: str, invariant: list, parts: dict, joints, dtype, harmonics=None) -> str:
-    text = block.replace("@ACCESS@", _ACCESS).replace("@INVARIANT@", "\n".join("  " + line for line in invariant))
+    text = block.replace("@HERMITE@", _HERMITE).replace("@ACCESS@", _ACCESS)
+    text = text.replace("@INVARIANT@", "\n".join("  " + line for line in invariant))
     for key, lines in parts.items():
         text = text.replace(f"@{key}@", "\n".join("      " + line for line in lines))
     text = text.replace("@NQ@", str(joints.nq)).replace("@NV@", str(joints.nv)).replace("@NW@", str(work_count(harmonics)))
