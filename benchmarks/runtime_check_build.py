@@ -5,7 +5,10 @@
 Builds the check's handler (``jaxbody/runtime_check.cc``, written against XLA's FFI C API alone)
 with ``jaxbody.cxx.build_library`` and the check's flags (``jaxbody.runtime_check.FLAGS``) into an
 empty cache directory, ``--repeats`` times, and, for comparison, the same handler written with
-XLA's C++ binding (``xla/ffi/api/ffi.h``, below), which is what the native kernel's handler uses.
+XLA's C++ binding (``xla/ffi/api/ffi.h``, below). The native kernel's handler
+(``jaxbody/backends/native/handler.cc``: the thread pool and the program registry, written
+against the C API too) is built the same way with the kernel's own flags, the library every
+native program is called through, and so the first build of a new user's first native call.
 Then, in fresh processes on an empty and on a warm cache, the whole first use:
 ``jaxbody.runtime_check.target()`` (build or load, and register with XLA). Writes ``NAME.json``
 and ``NAME.md`` (default ``runtime_check_build``) to ``benchmarks/results``.
@@ -74,6 +77,21 @@ def _build_seconds(source: str, repeats: int) -> list[float]:
     return times
 
 
+def _handler_seconds(repeats: int) -> list[float]:
+    import numpy as np
+
+    from jaxbody.backends.native import build
+
+    times = []
+    for _ in range(repeats):
+        with tempfile.TemporaryDirectory() as cache:
+            os.environ["JAXBODY_CACHE_DIR"] = cache
+            start = time.perf_counter()
+            build.handler_library(np.float64)
+            times.append(time.perf_counter() - start)
+    return times
+
+
 def _first_use_seconds(cache: str) -> float:
     env = dict(os.environ, JAXBODY_CACHE_DIR=cache, PYTHONPATH=str(REPO))
     out = subprocess.run([sys.executable, "-c", _FIRST_USE], env=env, capture_output=True, text=True, check=True)
@@ -96,6 +114,7 @@ def main(argv=None):
     saved = os.environ.get("JAXBODY_CACHE_DIR")
     rec["build_c_api_s"] = _build_seconds(shipped, args.repeats)
     rec["build_cxx_binding_s"] = _build_seconds(CXX_BINDING, args.repeats)
+    rec["build_native_handler_s"] = _handler_seconds(args.repeats)
     if saved is None:
         os.environ.pop("JAXBODY_CACHE_DIR", None)
     else:
@@ -115,6 +134,7 @@ def main(argv=None):
 
     rows = [row("build: C API (`jaxbody/runtime_check.cc`, shipped)", rec["build_c_api_s"]),
             row("build: the same handler with XLA's C++ binding (`ffi.h`)", rec["build_cxx_binding_s"]),
+            row("build: the native kernel's handler (C API, the kernel's flags, float64)", rec["build_native_handler_s"]),
             row("first use in a fresh process, empty cache (build, load, register)", empty),
             row("first use in a fresh process, warm cache (load, register)", warm)]
     md = ["# The run-time check's library: build time on an empty cache", "", stamp_markdown(rec["stamp"]), "",

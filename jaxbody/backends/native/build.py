@@ -93,7 +93,7 @@ def threads() -> int:
     return int(os.environ.get("JAXBODY_NATIVE_THREADS", os.cpu_count() or 1))
 
 
-def _handler_library(dtype) -> Path:
+def handler_library(dtype) -> Path:
     """The (tree-independent) handler library for ``dtype``, built where the cache lacks it."""
     scalar, ffi_type = SCALAR_TYPES[np.dtype(dtype)]
     source = (HANDLER_TEMPLATE.replace("@COMMON@", COMMON_TEMPLATE.replace("@T@", scalar)).replace("@DT@", ffi_type)
@@ -105,7 +105,7 @@ def _handler_library(dtype) -> Path:
 def _handler(dtype) -> str:
     """The FFI target name of the (tree-independent) handler for ``dtype``; built and registered once."""
     _await_prefetch(("handler", np.dtype(dtype)))
-    path = _handler_library(dtype)
+    path = handler_library(dtype)
     lib = ctypes.cdll.LoadLibrary(str(path))
     name = f"jaxbody_native_{path.stem}"
     jax.ffi.register_ffi_target(name, jax.ffi.pycapsule(lib.jaxbody_fd), platform="cpu")
@@ -331,7 +331,7 @@ def prefetch(model: Model, modes: tuple[str, ...], harmonics: int | None = None,
     if not available():
         return []
     dtype = np.dtype(model.body_pos.dtype)
-    futures = [_ahead(("handler", dtype), lambda: _handler_library(dtype))]
+    futures = [_ahead(("handler", dtype), lambda: handler_library(dtype))]
     for mode in modes:
         key, build = (model.tree, model.joints, False, dtype, mode, harmonics), _build_of(mode, batch)
 
