@@ -77,6 +77,7 @@ def prefetch_solve(scene, y0, solver, controller, saveat, adjoint, meter, event,
                       if derivative else [])
     futures += native.prefetch(model, tuple(modes))
     if isinstance(solver, diffrax.AbstractImplicitSolver) and not derivative:
-        # an implicit solver's Jacobian: the forward-mode program over a batch of nv tangents
-        futures += native.prefetch(model, ("jvp",), batch=model.nv)
+        # an implicit solver's Jacobian: the forward-mode program over a batch of tangents, one
+        # per component of the state (q, v and the works)
+        futures += native.prefetch(model, ("jvp",), batch=sum(int(x.size) for x in jax.tree.leaves(y0)))
     return futures
