@@ -88,9 +88,9 @@ def _worker(case: str, cassie: str | None) -> dict:
     if build is not None and hasattr(build, "build_library"):
         original = build.build_library
 
-        def timed(source, stem):
+        def timed(*args, **kwargs):
             t0 = time.perf_counter()
-            path = original(source, stem)
+            path = original(*args, **kwargs)
             native_s[0] += time.perf_counter() - t0
             native_s[1] += 1
             return path

@@ -73,16 +73,20 @@ def compiler_flags() -> tuple[str, ...]:
     return (level, *COMPILER_FLAGS)
 
 
-def build_library(source: str, stem: str, what: str = "the native kernel", flags: tuple[str, ...] | None = None) -> Path:
+def build_library(source, stem: str, what: str = "the native kernel", flags: tuple[str, ...] | None = None,
+                  identity: str | None = None) -> Path:
     """Compile ``source`` to a shared library in the cache (once per source, compiler, flags and CPU).
 
-    ``what`` names the library in errors; ``flags`` default to :func:`compiler_flags`."""
+    ``what`` names the library in errors; ``flags`` default to :func:`compiler_flags`. With an
+    ``identity`` (a text the source is a function of) the library is keyed by it instead of the
+    source, and ``source`` may be a function that makes it, called only when the library is built."""
     cxx = compiler()
     if cxx is None:
         raise RuntimeError(f"{what} needs a C++ compiler (g++ or $CXX); use kernel='vectorised'"
                            if what == "the native kernel" else f"{what} needs a C++ compiler (g++ or $CXX)")
     flags = compiler_flags() if flags is None else tuple(flags)
-    key = hashlib.sha256("\n".join((source, cxx, *flags, cpu_signature(), jax.__version__)).encode()).hexdigest()[:24]
+    text = identity if identity is not None else source
+    key = hashlib.sha256("\n".join((text, cxx, *flags, cpu_signature(), jax.__version__)).encode()).hexdigest()[:24]
     target = cache_dir() / f"{stem}_{key}.so"
     if target.is_file():
         return target
@@ -93,7 +97,7 @@ def build_library(source: str, stem: str, what: str = "the native kernel", flags
             return target
         with tempfile.TemporaryDirectory(dir=target.parent) as tmp:
             src = Path(tmp) / "src.cc"
-            src.write_text(source)
+            src.write_text(source() if callable(source) else source)
             out = Path(tmp) / "lib.so"
             cmd = [cxx, *flags, f"-I{jax.ffi.include_dir()}", str(src), "-o", str(out)]
             proc = subprocess.run(cmd, capture_output=True, text=True)

@@ -93,6 +93,18 @@ def threads() -> int:
     return int(os.environ.get("JAXBODY_NATIVE_THREADS", os.cpu_count() or 1))
 
 
+@functools.cache
+def generator_fingerprint() -> str:
+    """A hash of jaxbody's own source files (the code generator, its C++ templates and everything
+    they call): a changed generator changes every library's identity (:meth:`Kernel.identity`)."""
+    root = Path(__file__).resolve().parents[2]
+    digest = hashlib.sha256()
+    for path in sorted(root.rglob("*")):
+        if path.suffix in (".py", ".cc", ".h") and path.is_file():
+            digest.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes())
+    return digest.hexdigest()
+
+
 def handler_library(dtype) -> Path:
     """The (tree-independent) handler library for ``dtype``, built where the cache lacks it."""
     scalar, ffi_type = SCALAR_TYPES[np.dtype(dtype)]
@@ -154,22 +166,43 @@ class Kernel:
         self.widths = result_widths(joints, mode, harmonics)
         if harmonics is not None and not (mode in ("rk4", "rk4_run", "rk4_run_vjp") or mode.startswith("adaptive")):
             raise ValueError(f"a Fourier-series joint torque is evaluated by the RK4 step and the whole solves, not {mode!r}")
-        if mode == "rk4_run":
-            self.source = generate_run(tree, joints, self.dtype, harmonics)
-        elif mode == "rk4_run_vjp":
-            self.source = generate_run_vjp(tree, joints, self.dtype, harmonics)
-        elif mode.startswith("adaptive:"):
-            self.source = generate_adaptive(tree, joints, self.dtype, tableau(mode.split(":")[1]), harmonics)
-        elif mode.startswith("adaptive_vjp:"):
-            self.source = generate_adaptive_vjp(tree, joints, self.dtype, tableau(mode.split(":")[1]), harmonics)
-        else:
-            self.source = generate(tree, joints, with_external, self.dtype, mode, harmonics)
+        self._source = None  # generated on first need: a library in the cache is found without it
         self._addresses = {}  # built on the first call (traced), where a build error then shows
         self._batched = {}
         # this kernel's builds take turns; other kernels build beside them (see prefetch)
         self._build_lock = threading.Lock()
+        self._source_lock = threading.Lock()
         if mode in ("fd", "rk4", "energy", "rk4_run", "rk4_run_vjp") or mode.startswith("adaptive_vjp:"):
             self.batched = self.batched_with(self.widths)
+
+    @property
+    def source(self) -> str:
+        """The program's C++ source (generated once, on first need)."""
+        with self._source_lock:
+            if self._source is None:
+                tree, joints, dtype, mode, harmonics = self.tree, self.joints, self.dtype, self.mode, self.harmonics
+                if mode == "rk4_run":
+                    self._source = generate_run(tree, joints, dtype, harmonics)
+                elif mode == "rk4_run_vjp":
+                    self._source = generate_run_vjp(tree, joints, dtype, harmonics)
+                elif mode.startswith("adaptive:"):
+                    self._source = generate_adaptive(tree, joints, dtype, tableau(mode.split(":")[1]), harmonics)
+                elif mode.startswith("adaptive_vjp:"):
+                    self._source = generate_adaptive_vjp(tree, joints, dtype, tableau(mode.split(":")[1]), harmonics)
+                else:
+                    self._source = generate(tree, joints, self.with_external, dtype, mode, harmonics)
+            return self._source
+
+    def identity(self, build: str) -> str:
+        """What one build's source is a function of: the generator's own code
+        (:func:`generator_fingerprint`), the tree and joint layout (what makes them equal), the
+        mode, dtype, loads and harmonics, and the build. The library is looked up by it, so a
+        process whose library is cached generates no code (a second or so of Python for a
+        7-DoF arm's derivative programs)."""
+        tree, joints = self.tree, self.joints
+        structure = (tree.parent, tree.names, tree.traversal, joints.type, joints.body, joints.names)
+        return "\n".join((generator_fingerprint(), repr(structure), str(self.with_external), self.dtype.str, self.mode,
+                          repr(self.harmonics), build))
 
     @property
     def target(self) -> str:
@@ -196,9 +229,9 @@ class Kernel:
 
     def library(self, build: str) -> Path:
         """The shared library of one of :data:`BUILDS`, built where the cache lacks it (not loaded)."""
-        source = self.source.replace("@VECTOR_BYTES@", BUILDS[build])
         stem = self.mode.replace(":", "_") + ("" if self.harmonics is None else f"_fourier{self.harmonics}")
-        return build_library(source, f"{stem}_{build}")
+        return build_library(lambda: self.source.replace("@VECTOR_BYTES@", BUILDS[build]), f"{stem}_{build}",
+                             identity=self.identity(build))
 
     def build_for(self, batch: int) -> str:
         """Which of :data:`BUILDS` runs a call over ``batch`` states (:func:`build_for`), except
