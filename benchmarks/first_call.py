@@ -272,7 +272,8 @@ def _write(record, args):
           "after it. Seconds; ✗ marks a missed target (cold: model ≤ 1, simulate ≤ 3, gradient ≤ 10; warm: ≤ 1 each). "
           "`compiled`: XLA programs compiled / their XLA compile seconds / persistent-cache hits (JAX's monitoring "
           "events; a hit is a program loaded instead of compiled). `native builds`: seconds in the C++ compiler (libraries "
-          "looked up or built).", "",
+          "looked up or built), summed over the threads that ran it: a solve's builds run beside each other and beside "
+          "its trace, so the sum can exceed the wall time.", "",
           markdown_table(["case", "jaxbody", "phase", "import jaxbody", "model", "first simulate", "first gradient",
                           "compiled (simulate)", "compiled (gradient)", "native builds"], rows), ""]
     (args.out / f"{args.name}.md").write_text("\n".join(md))
