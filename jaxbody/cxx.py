@@ -27,7 +27,7 @@ import jax
 from .compilation_cache import cache_root
 
 __all__ = ["COMPILER_FLAGS", "OPTIMISATION_LEVELS", "build_library", "cache_dir", "compiler", "compiler_flags",
-           "cpu_signature"]
+           "cpu_signature", "ffi_unavailable_reason"]
 
 
 def compiler() -> str | None:
@@ -71,6 +71,17 @@ def compiler_flags() -> tuple[str, ...]:
     if level not in OPTIMISATION_LEVELS:
         raise ValueError(f"JAXBODY_NATIVE_OPTIMISATION must be one of {', '.join(OPTIMISATION_LEVELS)}, got {level!r}")
     return (level, *COMPILER_FLAGS)
+
+
+def ffi_unavailable_reason() -> str | None:
+    """Why an XLA FFI handler cannot be built here (``None`` where it can): no C++ compiler, or no
+    XLA FFI C header in jaxlib (the handlers are written against it alone)."""
+    if compiler() is None:
+        return f"no C++ compiler found ({os.environ.get('CXX', 'g++')}; set $CXX to one)"
+    header = Path(jax.ffi.include_dir()) / "xla" / "ffi" / "api" / "c_api.h"
+    if not header.is_file():
+        return f"jaxlib ships no XLA FFI headers ({header} is missing)"
+    return None
 
 
 def build_library(source, stem: str, what: str = "the native kernel", flags: tuple[str, ...] | None = None,

@@ -24,18 +24,16 @@ Where the library cannot be built (no C++ compiler, no XLA FFI headers) :func:`t
 """
 
 import ctypes
-import os
 import threading
 import warnings
 from importlib import resources
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ._types import Array, ArrayLike, Bool
-from .cxx import build_library, compiler
+from .cxx import build_library, ffi_unavailable_reason
 
 __all__ = ["FLAGS", "TARGET", "check", "target", "unavailable_reason"]
 
@@ -51,12 +49,7 @@ FLAGS = ("-O0", "-std=gnu++17", "-shared", "-fPIC", "-w")
 def unavailable_reason() -> str | None:
     """Why the check's library cannot be built here (``None`` where it can): no C++ compiler, or
     no XLA FFI C header in jaxlib."""
-    if compiler() is None:
-        return f"no C++ compiler found ({os.environ.get('CXX', 'g++')}; set $CXX to one)"
-    header = Path(jax.ffi.include_dir()) / "xla" / "ffi" / "api" / "c_api.h"
-    if not header.is_file():
-        return f"jaxlib ships no XLA FFI headers ({header} is missing)"
-    return None
+    return ffi_unavailable_reason()
 
 
 def target() -> str | None:

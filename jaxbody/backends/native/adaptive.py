@@ -15,7 +15,7 @@ from ..._types import Array, ArrayLike, Float
 from ...model import Model
 from .build import compiled_kernel
 from .rk4 import work_count
-from .solve import STATUS, saved_rows, torque_operand, work_row
+from .solve import STATUS, run_whole_solve, torque_operand, work_row
 from .symbolic import parameter_vector
 from .tableaux import METHODS
 
@@ -155,12 +155,7 @@ def adaptive_solve(
                                   reference, damping, torque, work0, has_work, frozen, every)
     kernel = compiled_kernel(model.tree, model.joints, False, np.dtype(model.body_pos.dtype), f"adaptive:{method}",
                              harmonics)
-    n = model.nq + model.nv + work_count(harmonics)
-    widths = kernel.widths + (max(n_ts * n, 1),) + ((width,) if checkpoints is not None else ())
-    outs = kernel.batched_with(widths)(*rows)
-    q1, v1, w1, status, ys = (o[0] for o in outs[:5])
-    result = (q1, v1, w1[0] if w1.shape[0] == 1 else w1, status, saved_rows(ys, status, n_ts, n))
-    return result + ((outs[5][0],) if checkpoints is not None else ())
+    return run_whole_solve(kernel, model, rows, n_ts, harmonics, width if checkpoints is not None else None)
 
 
 def adaptive_solve_vjp(model: Model, method: str, q, v, t0, t1, control: Control, dt0, max_steps: int, checkpoints: int,

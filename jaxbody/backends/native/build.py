@@ -14,7 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ...compilation_cache import cache_root
-from ...cxx import COMPILER_FLAGS, OPTIMISATION_LEVELS, build_library, compiler, compiler_flags, cpu_signature  # noqa: F401  (re-exported)
+from ...cxx import (COMPILER_FLAGS, OPTIMISATION_LEVELS, build_library, compiler, compiler_flags,  # noqa: F401  (re-exported)
+                    cpu_signature, ffi_unavailable_reason)
 from ...model import Model
 from .codegen import (COMMON_TEMPLATE, generate, generate_adaptive, generate_adaptive_vjp, generate_run, generate_run_vjp,
                       HANDLER_TEMPLATE, result_widths, SCALAR_TYPES)
@@ -39,12 +40,7 @@ def unavailable_reason() -> str | None:
     XLA FFI headers, or a backend other than the CPU."""
     if jax.default_backend() != "cpu":
         return f"the native kernel runs on the CPU and JAX's default backend is {jax.default_backend()}"
-    if compiler() is None:
-        return f"no C++ compiler found ({os.environ.get('CXX', 'g++')}; set $CXX to one)"
-    include = Path(jax.ffi.include_dir()) / "xla" / "ffi" / "api" / "c_api.h"
-    if not include.is_file():
-        return f"jaxlib ships no XLA FFI headers ({include} is missing)"
-    return None
+    return ffi_unavailable_reason()
 
 
 def available() -> bool:

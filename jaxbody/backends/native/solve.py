@@ -94,12 +94,19 @@ def _rollout(model, q, v, t0, t1, dt0, max_steps, force, ts, gravity, stiffness,
     rows, n_ts, harmonics = _rollout_rows(model, q, v, t0, t1, dt0, max_steps, force, ts, gravity, stiffness, reference,
                                           damping, torque, work0, frozen, every)
     kernel = compiled_kernel(model.tree, model.joints, False, np.dtype(model.body_pos.dtype), "rk4_run", harmonics)
+    return run_whole_solve(kernel, model, rows, n_ts, harmonics, width if checkpoints is not None else None)
+
+
+def run_whole_solve(kernel, model: Model, rows: tuple, n_ts: int, harmonics: int | None,
+                    checkpoint_width: int | None) -> tuple:
+    """One call of a whole-solve program (RK4 or adaptive) on its operand ``rows``: ``(q, v, w,
+    status, saved states)`` and, with a ``checkpoint_width``, the checkpoints row."""
     n = model.nq + model.nv + work_count(harmonics)
-    widths = kernel.widths + (max(n_ts * n, 1),) + ((width,) if checkpoints is not None else ())
+    widths = kernel.widths + (max(n_ts * n, 1),) + ((checkpoint_width,) if checkpoint_width is not None else ())
     outs = kernel.batched_with(widths)(*rows)
     q1, v1, w1, status, ys = (o[0] for o in outs[:5])
     result = (q1, v1, w1[0] if w1.shape[0] == 1 else w1, status, saved_rows(ys, status, n_ts, n))
-    return result + ((outs[5][0],) if checkpoints is not None else ())
+    return result + ((outs[5][0],) if checkpoint_width is not None else ())
 
 
 def saved_rows(ys: Array, status: Array, n_ts: int, n: int) -> Array:
