@@ -168,3 +168,27 @@ def test_work_precision_quick_study_is_consistent(tmp_path, monkeypatch):
     wp.plot(rec, tmp_path / "wp.png")
     assert (tmp_path / "wp.png").stat().st_size > 0
     del sys.modules["work_precision"]
+
+
+@pytest.mark.parametrize("name", ["panda", "anymal_c"])
+def test_host_mass_matrix_of_the_estimate_equals_mujoco(models_dir, name):
+    """The stiffness estimate's mass matrix, computed on host numbers by the generated kernels'
+    composite-rigid-body code (nothing traced or built), equals MuJoCo's ``mj_fullM`` on the same
+    file at a random configuration, a floating base's quaternion included."""
+    import mujoco
+
+    path = models_dir / f"{name}.xml"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = jb.from_mjcf(str(path))
+    rng = np.random.default_rng(5)
+    q = np.asarray(model.qpos0, np.float64) + 0.3 * rng.standard_normal(model.nq)
+    if model.nq != model.nv:  # the free base's unit quaternion
+        q[3:7] /= np.linalg.norm(q[3:7])
+    m = mujoco.MjModel.from_xml_path(str(path))
+    d = mujoco.MjData(m)
+    d.qpos[:] = q
+    mujoco.mj_forward(m, d)
+    M = np.zeros((m.nv, m.nv))
+    mujoco.mj_fullM(m, d, M)
+    np.testing.assert_allclose(auto._tree_mass_matrix(model, q), M, rtol=0, atol=1e-12 * np.abs(M).max())
