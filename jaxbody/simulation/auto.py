@@ -41,7 +41,6 @@ from ..model import Model
 
 __all__ = [
     "AutoChoice",
-    "explicit_method",
     "FLOAT32_TOLERANCE",
     "FLOAT64_TOLERANCE",
     "ERROR_PER_TOLERANCE",
@@ -209,7 +208,7 @@ def _estimate(scene, q, springs, dampers):
             "omega_min": float(nonzero.min()) if nonzero.size else 0.0}
 
 
-def explicit_method(target_error=None) -> str:
+def _explicit_method(target_error=None) -> str:
     """The explicit method ``solver="auto"`` takes for a scene that is not stiff: Dopri8 where a
     ``target_error`` asks for tolerances at or below ``HIGH_ORDER_BELOW`` (in Tsit5's error per
     unit tolerance), else Tsit5."""
@@ -232,7 +231,7 @@ def choose_auto(scene, q0, t0, t1, dtype, rtol, atol, target_error) -> AutoChoic
         target = float(target_error)
         if not target > 0 or not math.isfinite(target):
             raise ValueError(f"simulate: target_error must be a positive finite number, got {target_error!r}")
-        name = explicit_method(target)
+        name = _explicit_method(target)
         tol = target / ERROR_PER_TOLERANCE[name]
         why.append(f"target error {target:g} -> rtol = atol = {tol:.2g} ({name}'s final-state error per unit "
                    f"tolerance about {ERROR_PER_TOLERANCE[name]:g} on non-chaotic scenes; a chaotic one amplifies more)")
