@@ -114,6 +114,32 @@ def is_concrete(*xs) -> bool:
     return not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(xs))
 
 
+# the tracers of differentiation, whose ``primal`` is the value being differentiated at
+_DIFFERENTIATION_TRACERS = ("LinearizeTracer", "JVPTracer")
+
+
+def primal_value(x):
+    """The concrete value a leaf stands for: itself when concrete; under ``jax.grad``,
+    ``jax.vjp`` or ``jax.jvp`` of concrete values (and nothing else) the value being
+    differentiated at; ``None`` for any other traced value (``jit``, ``vmap``)."""
+    while isinstance(x, jax.core.Tracer):
+        if type(x).__name__ not in _DIFFERENTIATION_TRACERS:
+            return None
+        x = getattr(x, "primal", None)
+    return x
+
+
+def concrete_primals(tree):
+    """``tree`` with each leaf replaced by :func:`primal_value`, or ``None`` where some leaf has
+    none. Under eager differentiation the forward values are concrete: a check of them can
+    raise a plain Python error (and costs no operation on the tracers, each compiled alone)."""
+    leaves, treedef = jax.tree.flatten(tree)
+    values = [primal_value(x) for x in leaves]
+    if any(v is None for v, x in zip(values, leaves) if x is not None):
+        return None
+    return jax.tree.unflatten(treedef, values)
+
+
 def compiled_when_eager(method):
     """A function or method that runs as one compiled program when called on concrete values (in a
     notebook, a test, a failure diagnosis), and as plain code when traced (a vector field inside

@@ -34,6 +34,7 @@ import numpy as np
 
 from ._types import Array, ArrayLike, Bool
 from .cxx import build_library, ffi_unavailable_reason
+from .ffi_targets import note_target
 
 __all__ = ["FLAGS", "TARGET", "check", "target", "unavailable_reason"]
 
@@ -73,6 +74,7 @@ def target() -> str | None:
             lib = ctypes.cdll.LoadLibrary(str(path))
             jax.ffi.register_ffi_target(TARGET, jax.ffi.pycapsule(lib.jaxbody_check), platform="cpu")
             _loaded.append(lib)
+            note_target(TARGET, __name__, "target")
     return TARGET
 
 

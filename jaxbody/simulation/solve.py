@@ -16,8 +16,8 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from .. import maggi
-from .._util import is_concrete
+from .. import maggi, program_store
+from .._util import concrete_primals, is_concrete
 from ..scene import Event
 from ..validation import raise_if_any
 from .adjoint import choose_adjoint, step_bound
@@ -116,13 +116,22 @@ def simulate_scene(
         constrained = None
     correction = None
     # concrete inputs get Python errors with the culprit's index and value; traced ones can only
-    # carry a fixed message, so they are flags for error_if or a result code
-    if is_concrete(scene, q0, v0, t0):
-        concrete_value_checks(scene, q0, v0)
+    # carry a fixed message, so they are flags for error_if or a result code. Under eager
+    # differentiation (jax.grad of concrete values) the values are concrete too: checked as such
+    concrete = is_concrete(scene, q0, v0, t0)
+    primals = (scene, q0, v0, t0) if concrete else concrete_primals((scene, q0, v0, t0))
+    valid = None
+    if primals is not None:
+        concrete_value_checks(*primals[:3])
         if constrained is not None:
-            q0, v0, correction = concrete_constraint_check(constrained, t0, q0, v0, project_initial)
-        valid = None
-    else:
+            cs = constrained if concrete else scene_constraints(primals[0])
+            q_checked, v_checked, correction = concrete_constraint_check(cs, primals[3], primals[1], primals[2],
+                                                                         project_initial)
+            if concrete:
+                q0, v0 = q_checked, v_checked
+            elif q_checked is not primals[1] or v_checked is not primals[2]:
+                primals = None  # a state to project: projected below, where derivatives pass through it
+    if primals is None:
         if throw:
             batch_member_checks(scene, q0, v0)
         checks = value_checks(scene, q0, v0)
@@ -162,15 +171,21 @@ def simulate_scene(
     event = make_event(event, q0.dtype)
     prefetch_solve(scene, y0, solver_obj, controller, saveat, adjoint, meter, event, dense, slots)
     # the layout and the native switch are computed out here: static arguments of the compiled solve
-    sol, w_final = _solve(scene, y0, t0, t1, valid, solver_obj, controller, dt0, saveat, max_steps, adjoint, meter,
-                          event, solution_layout(scene), dense, slots, tuple(work_names), native_solve_enabled())
+    # a program traced in an earlier process is run as stored (no trace: program_store)
+    sol, w_final = program_store.call(_solve, (scene, y0, t0, t1, valid, solver_obj, controller, dt0, saveat,
+                                               max_steps, adjoint, meter, event, solution_layout(scene), dense,
+                                               slots, tuple(work_names), native_solve_enabled()), "simulate")
     if correction is not None:
         sol = dataclasses.replace(sol, stats={**sol.stats, "v0_correction": correction})
     sol = dataclasses.replace(sol, **ran_by(scene, solver))
     if valid is not None:
         sol = mark_invalid(sol, valid, t0)
     if throw:
-        sol = raise_on_failure(sol, scene, t0, t1)
+        forward = None if concrete else concrete_primals((sol, scene, t0, t1))
+        if forward is not None:
+            raise_on_failure(*forward)  # the forward values, checked as an eager solve's
+        else:
+            sol = raise_on_failure(sol, scene, t0, t1)
     return sol, w_final
 
 

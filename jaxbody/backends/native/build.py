@@ -16,6 +16,7 @@ import numpy as np
 from ...compilation_cache import cache_root
 from ...cxx import (COMPILER_FLAGS, OPTIMISATION_LEVELS, build_library, compiler, compiler_flags,  # noqa: F401  (re-exported)
                     cpu_signature, ffi_unavailable_reason)
+from ...ffi_targets import note_program, note_target
 from ...model import Model
 from .codegen import (COMMON_TEMPLATE, generate, generate_adaptive, generate_adaptive_vjp, generate_run, generate_run_vjp,
                       HANDLER_TEMPLATE, result_widths, SCALAR_TYPES)
@@ -120,7 +121,14 @@ def _handler(dtype) -> str:
     lib.jaxbody_register.argtypes = (ctypes.c_int64, ctypes.c_void_p)
     _handlers[name] = lib
     _loaded.append(lib)
+    note_target(name, __name__, "handler_target", np.dtype(dtype).str)
     return name
+
+
+def handler_target(dtype) -> str:
+    """The FFI target name of the handler for ``dtype`` (a dtype or its string), built and
+    registered in this process where it is not yet."""
+    return _handler(np.dtype(dtype))
 
 
 _handlers: dict = {}  # FFI target name -> its handler library (where programs are registered)
@@ -134,6 +142,24 @@ def _program_key(library: Path) -> int:
 
 
 _loaded: list = []  # libraries stay loaded for the life of the process (XLA holds their addresses)
+_registered: dict = {}  # library path -> its program key, once registered with its handler
+
+
+def register_program(library: str, dtype: str) -> int:
+    """Load a kernel's built ``library`` (a path) and register its program with the handler of
+    ``dtype`` (a NumPy dtype string); returns the key traced calls name it by. Idempotent. A
+    stored program (:mod:`jaxbody.program_store`) replays this in a process that never traced it."""
+    target = handler_target(dtype)
+    with _lock:
+        if library not in _registered:
+            lib = ctypes.cdll.LoadLibrary(library)
+            _loaded.append(lib)
+            key = _program_key(Path(library))
+            _handlers[target].jaxbody_register(key, ctypes.cast(lib.jaxbody_range, ctypes.c_void_p).value)
+            _registered[library] = key
+            # a stored program that calls it registers it again in a later process
+            note_program(key, __name__, "register_program", library, np.dtype(dtype).str)
+        return _registered[library]
 
 
 def merge_batch(axis_size: int, args, batched) -> tuple[list, int]:
@@ -214,14 +240,9 @@ class Kernel:
             if build not in self._addresses:
                 # a build started ahead of use (prefetch) is waited for, not raced
                 _await_prefetch((self.key, build))
-                library = self.library(build)
-                with _lock:
-                    lib = ctypes.cdll.LoadLibrary(str(library))
-                    _loaded.append(lib)
-                    key = _program_key(library)
-                    _handlers[self.target].jaxbody_register(key, ctypes.cast(lib.jaxbody_range, ctypes.c_void_p).value)
-                self._addresses[build] = key
-            return self._addresses[build]
+                library = str(self.library(build))
+                self._addresses[build] = (register_program(library, self.dtype.str), library)
+            return self._addresses[build][0]
 
     def library(self, build: str) -> Path:
         """The shared library of one of :data:`BUILDS`, built where the cache lacks it (not loaded)."""

@@ -1,0 +1,575 @@
+"""Traced programs stored on disk: a later process runs a solve without tracing it again.
+
+JAX's persistent compilation cache (:mod:`jaxbody.compilation_cache`) spares a second process
+XLA's compilation, not the Python work before it: tracing a solve through diffrax and
+lowering it to XLA's language took 0.7 s of a warm iiwa arm's 1.05 s first ``simulate``, and
+1.4 s of a four-bar's 2.0 s. :func:`call` runs a function of a solve's arguments as a program
+exported with :mod:`jax.export` and stored in ``<cache>/programs``, keyed by a fingerprint of
+everything the traced program is a function of except the values of its input arrays:
+
+* the shapes and dtypes of the input arrays, and every other argument by value (numbers,
+  strings, the static fields of modules, arrays held as constants);
+* the functions among the arguments (a control law, a constraint, an event) by their code, the
+  values they close over and the globals their code names, recursively (a module of one of the
+  trusted packages, :data:`TRUSTED`, by its name; any other module by the attributes the code
+  names);
+* the versions of jaxbody's source (a hash of its files) and of the packages it traces through,
+  JAX's configuration that changes a trace, and jaxbody's environment variables.
+
+An argument that cannot be fingerprinted this way (an object of a class that is neither a
+dataclass nor a module of the kinds above) makes :func:`call` trace as before: a program is
+reused only when the fingerprint proves it is the one tracing would give. So do arguments that
+are traced (inside the user's ``jit``, ``vmap`` or ``grad``, where the user's program holds the
+solve) and programs that cannot be exported (a host callback: a progress meter).
+
+``JAXBODY_PROGRAM_STORE=0`` (or ``off``, ``false``, ``no``) turns the store off.
+"""
+
+import dataclasses
+import enum
+import functools
+import hashlib
+import importlib
+import os
+import pickle
+import sys
+import threading
+import types
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import numpy as np
+
+from .compilation_cache import cache_root
+from .ffi_targets import needed, register, targets
+
+__all__ = ["ENV_SWITCH", "TRUSTED", "Undescribable", "call", "counts", "describe", "enabled", "fingerprint", "forget",
+           "store_dir"]
+
+#: The environment variable that turns the store off (``0``, ``off``, ``false``, ``no``).
+ENV_SWITCH = "JAXBODY_PROGRAM_STORE"
+
+#: Packages whose functions and classes are fingerprinted by name: their code is fixed by the
+#: versions in the fingerprint (jaxbody's by the hash of its source files).
+TRUSTED = frozenset({
+    "jaxbody", "jax", "jaxlib", "numpy", "diffrax", "equinox", "optimistix", "lineax", "jaxtyping", "builtins",
+    "math", "cmath", "operator", "functools", "itertools", "typing", "collections", "dataclasses", "enum", "abc",
+    "types",
+})
+
+# the packages a solve is traced through: their versions key every program
+_VERSIONED = ("jax", "jaxlib", "numpy", "diffrax", "equinox", "optimistix", "lineax")
+
+# bump when the stored format changes
+_FORMAT = 1
+
+
+class Undescribable(TypeError):
+    """An argument the fingerprint cannot describe (the program is traced instead of stored)."""
+
+
+def enabled() -> bool:
+    """Whether :func:`call` may store and reuse programs (``$JAXBODY_PROGRAM_STORE``)."""
+    return os.environ.get(ENV_SWITCH, "1").strip().lower() not in ("0", "off", "false", "no")
+
+
+def store_dir() -> Path:
+    """Where programs are stored: ``<cache>/programs`` (:func:`jaxbody.compilation_cache.cache_root`)."""
+    return cache_root() / "programs"
+
+
+# ---------------------------------------------------------------------------------------------
+# the fingerprint
+
+
+def _trusted(module: str | None) -> bool:
+    return module is not None and module.split(".", 1)[0] in TRUSTED
+
+
+def _code_names(code: types.CodeType) -> set:
+    """The global and attribute names ``code`` and the code nested in it refer to."""
+    names = set(code.co_names)
+    for const in code.co_consts:
+        if isinstance(const, types.CodeType):
+            names |= _code_names(const)
+    return names
+
+
+def _code(code: types.CodeType) -> tuple:
+    """A code object by what it executes (not where it was written: moving a function in its
+    file changes no program)."""
+    consts = tuple(_code(c) if isinstance(c, types.CodeType) else ("const", type(c).__name__, repr(c))
+                   for c in code.co_consts)
+    return ("code", code.co_code, consts, code.co_names, code.co_varnames, code.co_freevars, code.co_cellvars,
+            code.co_argcount, code.co_kwonlyargcount, code.co_flags)
+
+
+class _Describer:
+    """One fingerprint: :meth:`__call__` describes a value as nested tuples of plain data."""
+
+    def __init__(self):
+        self._seen: dict = {}  # id -> its index: a value met again (or in a cycle) is a reference
+
+    def __call__(self, x, static: bool = True, names: frozenset = frozenset()):
+        # `static`: arrays are described by value (constants of the program) rather than by
+        # shape (inputs); `names`: the attribute names of the code that reached a module
+        if x is None or isinstance(x, (bool, int, float, complex, str, bytes, type(Ellipsis))):
+            return (type(x).__name__, repr(x))
+        if isinstance(x, (np.ndarray, np.generic, jax.Array)):
+            if not static and not isinstance(x, np.generic):
+                return ("input",) + _aval(x)
+            if isinstance(x, jax.core.Tracer):
+                raise Undescribable("a traced value held as a constant")
+            value = np.asarray(x)
+            return ("value", value.shape, str(value.dtype), hashlib.sha256(value.tobytes()).hexdigest())
+        if isinstance(x, np.dtype):
+            return ("dtype", str(x))
+        key = id(x)
+        if key in self._seen:
+            return ("ref", self._seen[key])
+        self._seen[key] = len(self._seen)
+        # keep the object alive while its id stands for it
+        self._seen[("keep", key)] = x
+        if isinstance(x, (tuple, list)) and not hasattr(x, "_fields"):
+            return (type(x).__name__, tuple(self(v, static, names) for v in x))
+        if isinstance(x, tuple):  # a named tuple
+            return ("namedtuple", self._class(type(x)), tuple(self(v, static, names) for v in x))
+        if isinstance(x, dict):
+            items = sorted(((self(k), self(v, static, names)) for k, v in x.items()), key=repr)
+            return ("dict", tuple(items))
+        if isinstance(x, (set, frozenset)):
+            return (type(x).__name__, tuple(sorted((self(v) for v in x), key=repr)))
+        if isinstance(x, type):
+            return self._class(x)
+        if isinstance(x, enum.Enum):
+            return ("enum", self._class(type(x)), x.name)
+        if isinstance(x, types.ModuleType):
+            return self._module(x, names)
+        if isinstance(x, types.FunctionType):
+            return self._function(x)
+        if isinstance(x, types.MethodType):
+            return ("method", self(x.__self__), self(x.__func__))
+        if isinstance(x, functools.partial):
+            return ("partial", self(x.func), self(x.args), self(x.keywords))
+        if isinstance(x, types.BuiltinFunctionType):
+            if not _trusted(getattr(x, "__module__", None) or "builtins"):
+                raise Undescribable(f"the built-in function {x!r}")
+            return ("builtin", getattr(x, "__module__", None), x.__qualname__)
+        if dataclasses.is_dataclass(x):  # equinox modules among them
+            fields = []
+            for f in dataclasses.fields(x):
+                if not hasattr(x, f.name):
+                    continue
+                fields.append((f.name, self(getattr(x, f.name), static or bool(f.metadata.get("static")))))
+            return ("dataclass", self._class(type(x)), tuple(fields))
+        if _trusted(type(x).__module__) and type(x).__repr__ is not object.__repr__:
+            # a value of jaxbody's or a trusted package's own class that says what it is (a
+            # PyTreeDef, a dtype-like): its repr, unless that is just its address
+            text = repr(x)
+            if " at 0x" not in text:
+                return ("repr", self._class(type(x)), text)
+        raise Undescribable(f"a {type(x).__module__}.{type(x).__qualname__}")
+
+    def _class(self, cls: type):
+        name = (cls.__module__, cls.__qualname__)
+        if _trusted(cls.__module__):
+            return ("class",) + name
+        # a user's class: what its own body defines (methods by code, class-level values)
+        body = []
+        for attr, value in sorted(vars(cls).items()):
+            if attr.startswith("__") and attr.endswith("__") or attr == "_abc_impl":
+                if not (isinstance(value, types.FunctionType) and value.__qualname__.startswith(cls.__qualname__ + ".")):
+                    continue  # written by Python, dataclasses or equinox, not by the user
+            if isinstance(value, (staticmethod, classmethod)):
+                value = value.__func__
+            if isinstance(value, property):
+                value = (value.fget, value.fset)
+            body.append((attr, self(value)))
+        return ("class",) + name + (tuple(body), tuple(self._class(b) for b in cls.__bases__ if b is not object))
+
+    def _module(self, module: types.ModuleType, names: frozenset):
+        if _trusted(module.__name__):
+            return ("module", module.__name__)
+        # a user's module: the attributes the code that reached it names
+        attrs = tuple((n, self(getattr(module, n), True, names)) for n in sorted(names) if hasattr(module, n))
+        return ("module", module.__name__, attrs)
+
+    def _function(self, fn: types.FunctionType):
+        qualname = fn.__qualname__
+        if _trusted(fn.__module__) and "<locals>" not in qualname and not fn.__closure__:
+            return ("function", fn.__module__, qualname)
+        names = frozenset(_code_names(fn.__code__))
+        cells = tuple(self(c.cell_contents, True, names) if _filled(c) else ("empty",) for c in fn.__closure__ or ())
+        globals_ = tuple((n, self(fn.__globals__[n], True, names)) for n in sorted(names) if n in fn.__globals__)
+        return ("function", fn.__module__, qualname, _code(fn.__code__), cells, globals_,
+                self(fn.__defaults__), self(fn.__kwdefaults__))
+
+
+def _aval(x) -> tuple:
+    """An input array's shape, dtype and weak type (a traced one's too)."""
+    aval = jax.typeof(x)
+    return (tuple(aval.shape), str(aval.dtype), bool(getattr(aval, "weak_type", False)))
+
+
+def _filled(cell) -> bool:
+    try:
+        cell.cell_contents
+    except ValueError:
+        return False
+    return True
+
+
+def describe(x, static: bool = False):
+    """``x`` described as nested tuples of plain data, the input arrays by shape and dtype (all
+    arrays by value with ``static=True``); raises :class:`Undescribable` where some part of it
+    cannot be described."""
+    return _Describer()(x, static)
+
+
+@functools.cache
+def _source_hash() -> str:
+    """A hash of jaxbody's own source files."""
+    root = Path(__file__).resolve().parent
+    digest = hashlib.sha256()
+    for path in sorted(root.rglob("*")):
+        if path.suffix in (".py", ".cc", ".h") and path.is_file():
+            digest.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes())
+    return digest.hexdigest()
+
+
+def _environment() -> tuple:
+    """What a trace depends on besides its arguments: package versions, JAX's configuration,
+    jaxbody's environment variables (the cache's place aside) and the CPU count (the native
+    kernel's default threads)."""
+    versions = tuple((name, getattr(importlib.import_module(name), "__version__", "?")) for name in _VERSIONED)
+    config = tuple((name, str(getattr(jax.config, name))) for name in (
+        "jax_enable_x64", "jax_default_matmul_precision", "jax_numpy_dtype_promotion", "jax_numpy_rank_promotion",
+        "jax_default_prng_impl", "jax_platforms"))
+    env = tuple(sorted((k, v) for k, v in os.environ.items()
+                       if (k.startswith("JAXBODY_") and k not in ("JAXBODY_CACHE_DIR", ENV_SWITCH)) or k == "CXX"))
+    return (_FORMAT, _source_hash(), versions, config, env, os.cpu_count(), sys.version_info[:2],
+            jax.default_backend())
+
+
+def fingerprint(name: str, args, differentiated: tuple = ()) -> str:
+    """The key of the program ``name`` of ``args`` (see the module docstring) or, where
+    ``differentiated`` marks input arrays, of its derivative with respect to those; raises
+    :class:`Undescribable` where the arguments cannot be fingerprinted."""
+    text = repr((name, tuple(differentiated), _environment(), describe(args)))
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+# ---------------------------------------------------------------------------------------------
+# the outputs: arrays and the structure around them, stored beside the program
+
+
+def _skeleton(x, leaves: list):
+    """``x`` as plain data that can be stored, with its arrays appended to ``leaves``."""
+    if isinstance(x, jax.Array | np.ndarray):
+        leaves.append(x)
+        return ("array",)
+    if x is None or isinstance(x, (bool, int, float, str)):
+        return ("value", x)
+    if isinstance(x, type):
+        return ("class", x.__module__, x.__qualname__)
+    if isinstance(x, (tuple, list)) and not hasattr(x, "_fields"):
+        return (type(x).__name__, [_skeleton(v, leaves) for v in x])
+    if isinstance(x, dict):
+        return ("dict", [(k, _skeleton(v, leaves)) for k, v in x.items()])
+    if dataclasses.is_dataclass(x):
+        fields = [(f.name, _skeleton(getattr(x, f.name), leaves)) for f in dataclasses.fields(x) if hasattr(x, f.name)]
+        return ("dataclass", type(x).__module__, type(x).__qualname__, fields)
+    raise Undescribable(f"an output of type {type(x).__qualname__}")
+
+
+def _resolve(module: str, qualname: str):
+    obj = importlib.import_module(module)
+    for part in qualname.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def _rebuild(skeleton, leaves):
+    """The inverse of :func:`_skeleton`: ``leaves`` an iterator over the arrays."""
+    kind = skeleton[0]
+    if kind == "array":
+        return next(leaves)
+    if kind == "value":
+        return skeleton[1]
+    if kind == "class":
+        return _resolve(skeleton[1], skeleton[2])
+    if kind in ("tuple", "list"):
+        items = [_rebuild(v, leaves) for v in skeleton[1]]
+        return tuple(items) if kind == "tuple" else items
+    if kind == "dict":
+        return {k: _rebuild(v, leaves) for k, v in skeleton[1]}
+    cls = _resolve(skeleton[1], skeleton[2])
+    # the fields as they were (their converters already ran when the output was made)
+    obj = object.__new__(cls)
+    for name, value in skeleton[3]:
+        object.__setattr__(obj, name, _rebuild(value, leaves))
+    return obj
+
+
+# ---------------------------------------------------------------------------------------------
+# storing and running
+
+
+@dataclasses.dataclass(frozen=True)
+class _Entry:
+    exported: object  # jax.export.Exported
+    outputs: object  # the outputs' skeleton
+    notes: tuple  # the registrations the program needs (ffi_targets.needed)
+
+
+_entries: dict = {}  # in this process: (function, static structure, input shapes) -> _Entry or None
+# how each call was served in this process (counts)
+_counts = {"loaded": 0, "stored": 0, "declined": 0, "traced": 0}
+
+
+def counts() -> dict:
+    """How this process's programs were found, by entry (the first call of each program
+    structure; later calls reuse it in memory): ``loaded`` from the store, ``stored`` (traced
+    and written), ``declined`` (traced: arguments that cannot be fingerprinted, or a program
+    that cannot be stored), and ``traced`` calls in all that did not run a stored program
+    (switched off, or traced arguments)."""
+    return dict(_counts)
+
+
+def forget() -> None:
+    """Forget the programs held in this process's memory (the store on disk stays): the next
+    call of each reads the store again."""
+    _entries.clear()
+
+
+def _export(fn, args, leaves, treedef):
+    """Trace ``fn(*args)`` once, as a program of the input arrays ``leaves``."""
+    skeleton = []
+
+    def flat(*arrays):
+        out = fn(*eqx.combine(jax.tree.unflatten(treedef, arrays), static_part))
+        outputs: list = []
+        skeleton.append(_skeleton(out, outputs))
+        return outputs
+
+    static_part = eqx.partition(args, eqx.is_array)[1]
+    specs = _specs(leaves)
+    program = jax.jit(flat)
+    # traced first: the FFI targets it registers are then known to the export's custom-call
+    # check (which reuses this trace); which of them it calls is read from its text
+    program.trace(*specs)
+    exported = _exported(program, specs)
+    return _Entry(exported, skeleton[-1], _needed(exported))
+
+
+def _exported(program, specs):
+    # jaxbody's own custom calls are allowed (export refuses unknown ones)
+    checks = [jax.export.DisabledSafetyCheck.custom_call(target) for target in targets()]
+    return jax.export.export(program, disabled_checks=checks)(*specs)
+
+
+def _needed(exported) -> tuple:
+    """The registrations of FFI targets and native programs ``exported`` calls."""
+    try:
+        return needed(exported.mlir_module())
+    except KeyError as err:
+        raise Undescribable(str(err)) from None
+
+
+def _specs(leaves) -> list:
+    return [jax.ShapeDtypeStruct(shape, dtype, weak_type=weak) for shape, dtype, weak in map(_aval, leaves)]
+
+
+def _export_derivative(fn, args, leaves, treedef, primal: _Entry, mask) -> _Entry:
+    """The reverse derivative of ``fn(*args)`` (stored as ``primal``) with respect to the input
+    arrays ``mask`` marks: a program of all the inputs and the cotangents of the inexact
+    outputs that returns the cotangents of the marked inputs. Traced as ``jax.vjp`` of ``fn``,
+    whose forward pass it runs again (the forward pass the caller sees is the primal program)."""
+    outputs = primal.exported.out_avals
+    inexact = [np.issubdtype(a.dtype, np.inexact) for a in outputs]
+    n_in = len(leaves)
+    static_part = eqx.partition(args, eqx.is_array)[1]
+
+    def reverse(*arrays_and_cotangents):
+        arrays, cotangents = arrays_and_cotangents[:n_in], arrays_and_cotangents[n_in:]
+
+        def marked(*diff):
+            it = iter(diff)
+            full = [next(it) if m else a for a, m in zip(arrays, mask)]
+            out: list = []
+            _skeleton(fn(*eqx.combine(jax.tree.unflatten(treedef, full), static_part)), out)
+            return [o for o, f in zip(out, inexact) if f]
+
+        _, pullback = jax.vjp(marked, *(a for a, m in zip(arrays, mask) if m))
+        return list(pullback(list(cotangents)))
+
+    specs = _specs(leaves) + [jax.ShapeDtypeStruct(a.shape, a.dtype) for a, f in zip(outputs, inexact) if f]
+    exported = _exported(jax.jit(reverse), specs)
+    return _Entry(exported, None, _needed(exported))
+
+
+def _differentiated(primal: _Entry, reverse: _Entry, leaves, mask):
+    """The primal program's outputs as a function JAX differentiates in reverse mode through
+    the stored ``reverse`` program (``jax.custom_vjp``); the unmarked inputs are constants."""
+    inexact = [np.issubdtype(a.dtype, np.inexact) for a in primal.exported.out_avals]
+    constants = [None if m else x for x, m in zip(leaves, mask)]
+
+    def full(diff):
+        it = iter(diff)
+        return [next(it) if m else c for c, m in zip(constants, mask)]
+
+    @jax.custom_vjp
+    def run(diff):
+        return tuple(primal.exported.call(*full(diff)))
+
+    def run_fwd(diff):
+        return run(diff), diff
+
+    def run_bwd(diff, cotangents):
+        kept = [c for c, f in zip(cotangents, inexact) if f]
+        return (tuple(reverse.exported.call(*full(diff), *kept)),)
+
+    run.defvjp(run_fwd, run_bwd)
+    return run(tuple(x for x, m in zip(leaves, mask) if m))
+
+
+def _read(path: Path):
+    try:
+        data = pickle.loads(path.read_bytes())
+    except FileNotFoundError:
+        return None
+    except Exception:  # noqa: BLE001  (a damaged or foreign file: traced and stored anew)
+        return None
+    if not isinstance(data, dict) or data.get("format") != _FORMAT:
+        return None
+    if data.get("exported") is None:
+        return False  # a program that cannot be stored: trace it
+    try:
+        exported = jax.export.deserialize(bytearray(data["exported"]))
+    except Exception:  # noqa: BLE001
+        return None
+    return _Entry(exported, data["outputs"], tuple(data["notes"]))
+
+
+def _write(path: Path, entry: "_Entry | None", reason: str = "") -> None:
+    try:
+        if entry is None:
+            data = {"format": _FORMAT, "exported": None, "reason": reason}
+        else:
+            data = {"format": _FORMAT, "exported": bytes(entry.exported.serialize()), "outputs": entry.outputs,
+                    "notes": list(entry.notes)}
+    except ImportError:  # jax.export's serialiser needs the flatbuffers package: kept in memory only
+        return
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        # written whole, then renamed: a reader never sees half a file
+        tmp = path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp")
+        tmp.write_bytes(pickle.dumps(data))
+        os.replace(tmp, path)
+    except OSError:  # a read-only cache: the program is traced again next time
+        pass
+
+
+def _local_key(name, leaves, treedef, static_part):
+    """What ``jax.jit`` would key its own cache by in this process: the static structure and the
+    input shapes (``None``: a static part that cannot be hashed)."""
+    static_leaves, static_def = jax.tree.flatten(static_part)
+    key = (name, treedef, static_def, tuple(static_leaves), tuple(_aval(x) for x in leaves))
+    try:
+        hash(key)
+    except TypeError:
+        return None
+    return key
+
+
+def call(fn, args: tuple, name: str):
+    """``fn(*args)``, as the program stored for it where there is one (see the module
+    docstring), else traced, stored and run; as ``fn(*args)`` itself where the arguments are
+    traced, cannot be fingerprinted, or the program cannot be exported. ``fn`` must be a pure
+    function of ``args`` whose outputs are arrays in tuples, lists, dicts and dataclasses;
+    ``name`` tells its programs apart from other functions'."""
+    if not enabled():
+        return _traced(fn, args)
+    dynamic, static_part = eqx.partition(args, eqx.is_array)
+    leaves, treedef = jax.tree.flatten(dynamic)
+    mask = tuple(isinstance(x, jax.core.Tracer) for x in leaves)
+    # traced: only under reverse-mode differentiation of an eager call (jax.grad of a function
+    # of concrete values), where the derivative program is stored too; any other trace (the
+    # user's jit or vmap, forward mode) holds the solve in its own program
+    if any(mask) and not all(_reverse_of_concrete(x) for x, m in zip(leaves, mask) if m):
+        return _traced(fn, args)
+    # arrays placed on one device as JAX's default: a program is stored without placements
+    if any(isinstance(x, jax.Array) and not isinstance(x, jax.core.Tracer) and len(x.sharding.device_set) != 1
+           for x in leaves):
+        return _traced(fn, args)
+    primal = _entry(fn, args, name, leaves, treedef, static_part, ())
+    if primal is None:
+        return _traced(fn, args)
+    register(primal.notes)
+    if not any(mask):
+        outputs = primal.exported.call(*leaves)
+    else:
+        reverse = _entry(fn, args, name, leaves, treedef, static_part, mask, primal)
+        if reverse is None:
+            return _traced(fn, args)
+        register(reverse.notes)
+        outputs = _differentiated(primal, reverse, leaves, mask)
+    return _rebuild(primal.outputs, iter(outputs))
+
+
+def _traced(fn, args):
+    _counts["traced"] += 1
+    return fn(*args)
+
+
+def _reverse_of_concrete(x) -> bool:
+    """Whether ``x`` is traced by reverse-mode differentiation (``jax.grad``, ``jax.vjp``) of a
+    concrete value, and nothing else."""
+    primal = getattr(x, "primal", None)
+    return (type(x).__name__ == "LinearizeTracer" and primal is not None and not isinstance(primal, jax.core.Tracer)
+            and np.issubdtype(jax.typeof(x).dtype, np.inexact))
+
+
+def _entry(fn, args, name, leaves, treedef, static_part, mask, primal=None):
+    """The program of ``fn(*args)`` (``mask`` empty) or its derivative with respect to the
+    marked inputs (``primal``: the program's own entry), from this process's memory, the store,
+    or traced and stored; ``None`` where it is traced as before."""
+    local = _local_key(name, leaves, treedef, static_part)
+    if local is not None:
+        local = (local, mask)
+        if local in _entries:
+            return _entries[local]
+    entry = _lookup(fn, args, name, leaves, treedef, mask, primal)
+    if local is not None:
+        _entries[local] = entry
+    return entry
+
+
+def _lookup(fn, args, name, leaves, treedef, mask, primal):
+    """The entry of ``fn(*args)`` or its derivative (:func:`_entry`): read from the store, or
+    exported and written there; ``None`` where the program is traced instead."""
+    try:
+        key = fingerprint(name, args, mask)
+    except Undescribable:
+        _counts["declined"] += 1
+        return None
+    path = store_dir() / f"{name}{'-reverse' if mask else ''}-{key}.pickle"
+    entry = _read(path)
+    if entry is False:
+        _counts["declined"] += 1
+        return None
+    if entry is not None:
+        _counts["loaded"] += 1
+        return entry
+    try:
+        entry = (_export(fn, args, leaves, treedef) if not mask
+                 else _export_derivative(fn, args, leaves, treedef, primal, mask))
+    except Exception as err:  # noqa: BLE001  (an output the store cannot rebuild, a host
+        # callback: traced as before; a genuine error in the user's code is raised again there)
+        _write(path, None, f"{type(err).__name__}: {err}")
+        _counts["declined"] += 1
+        return None
+    _write(path, entry)
+    _counts["stored"] += 1
+    return entry

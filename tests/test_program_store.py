@@ -1,0 +1,319 @@
+"""Traced programs stored on disk (jaxbody.program_store): the same results as tracing, a later
+process that runs them without tracing, and a fingerprint that changes with everything the
+program is a function of."""
+
+import json
+import os
+import pickle
+import subprocess
+import sys
+import textwrap
+import types
+import uuid
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxbody as jb
+from jaxbody import program_store
+
+
+@pytest.fixture
+def store(tmp_path, monkeypatch):
+    """An empty store of this test's own, and nothing of it held in memory."""
+    monkeypatch.setattr(program_store, "store_dir", lambda: tmp_path / "programs")
+    monkeypatch.delenv(program_store.ENV_SWITCH, raising=False)
+    program_store.forget()
+    yield tmp_path / "programs"
+    program_store.forget()
+
+
+def _primal_files(store):
+    return [p for p in store.glob("simulate-*.pickle") if not p.name.startswith("simulate-reverse-")]
+
+
+def _arm(gain_offset=0.0):
+    """A two-link arm under a PD law that closes over an array (the target)."""
+    b = jb.ModelBuilder()
+    b.add_body("upper", mass=1.0, com=(0.0, 0.0, -0.25), inertia=(0.01, 0.01, 0.001), joints=[jb.Hinge(axis=(0, 1, 0))])
+    b.add_body("lower", "upper", pos=(0, 0, -0.5), mass=0.7, com=(0.0, 0.0, -0.2), inertia=(0.008, 0.008, 0.001),
+               joints=[jb.Hinge(axis=(0, 1, 0))])
+    model = b.build()
+    target = jnp.asarray([0.3, -0.2])
+
+    def pd(t, q, v, gains):
+        return (gains[0] + gain_offset) * (target - q) - gains[1] * v
+
+    return model, pd
+
+
+def _loss(model, pd, q0):
+    def loss(gains):
+        sc = jb.scene(model, actuation=(pd, gains))
+        return jnp.sum(jb.simulate(sc, q0, jnp.zeros(2), 0.5, n_save=11).q[-1] ** 2)
+    return loss
+
+
+def test_stored_program_gives_the_traced_results_and_gradients(store, monkeypatch):
+    model, pd = _arm()
+    q0 = jnp.asarray([0.4, 0.1])
+    gains = jnp.asarray([8.0, 1.0])
+    scene = jb.scene(model, actuation=(pd, gains))
+    before = program_store.counts()
+    sol = jb.simulate(scene, q0, jnp.zeros(2), 0.5, n_save=11)
+    grad = jax.grad(_loss(model, pd, q0))(gains)
+    after = program_store.counts()
+    assert after["stored"] - before["stored"] == 2  # the solve and its derivative
+    assert len(_primal_files(store)) == 1
+    assert len(list(store.glob("simulate-reverse-*.pickle"))) == 1
+    # read back from the store (not from memory): the same numbers again
+    program_store.forget()
+    again = jb.simulate(scene, q0, jnp.zeros(2), 0.5, n_save=11)
+    grad_again = jax.grad(_loss(model, pd, q0))(gains)
+    assert program_store.counts()["loaded"] - after["loaded"] == 2
+    np.testing.assert_array_equal(again.q, sol.q)
+    np.testing.assert_array_equal(grad_again, grad)
+    assert again.kernel == sol.kernel and again.layout == sol.layout and again.success
+    # and what tracing gives, the store switched off
+    monkeypatch.setenv(program_store.ENV_SWITCH, "0")
+    traced = jb.simulate(scene, q0, jnp.zeros(2), 0.5, n_save=11)
+    grad_traced = jax.grad(_loss(model, pd, q0))(gains)
+    np.testing.assert_allclose(traced.q, sol.q, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(grad_traced, grad, rtol=1e-12, atol=1e-14)
+    for name in ("t", "v", "energy", "t_final", "q_final", "v_final", "energy_drift"):
+        np.testing.assert_allclose(getattr(traced, name), getattr(sol, name), rtol=0, atol=1e-14)
+    assert {k: int(v) for k, v in traced.stats.items()} == {k: int(v) for k, v in sol.stats.items()}
+    assert int(traced.result._value) == int(sol.result._value)
+
+
+def test_gradient_matches_finite_differences(store):
+    model, pd = _arm()
+    q0 = jnp.asarray([0.4, 0.1])
+    gains = jnp.asarray([8.0, 1.0])
+    loss = _loss(model, pd, q0)
+    grad = jax.grad(loss)(gains)
+    h = 1e-6
+    fd = [(loss(gains.at[i].add(h)) - loss(gains.at[i].add(-h))) / (2 * h) for i in range(2)]
+    np.testing.assert_allclose(grad, fd, rtol=1e-6)
+
+
+def test_traced_calls_are_left_to_the_callers_program(store):
+    model, pd = _arm()
+    q0 = jnp.asarray([0.4, 0.1])
+    gains = jnp.asarray([8.0, 1.0])
+    loss = _loss(model, pd, q0)
+    eager = loss(gains)
+    before = program_store.counts()
+    # jit, vmap and a gradient inside jit hold the solve in their own programs
+    np.testing.assert_allclose(jax.jit(loss)(gains), eager, rtol=1e-13)
+    np.testing.assert_allclose(jax.vmap(loss)(jnp.stack([gains, gains])), [eager, eager], rtol=1e-13)
+    np.testing.assert_allclose(jax.jit(jax.grad(loss))(gains), jax.grad(loss)(gains), rtol=1e-10)
+    after = program_store.counts()
+    assert after["traced"] - before["traced"] >= 3
+    assert len(list(store.glob("*.pickle"))) == 2  # the eager solve and the reverse-mode one only
+
+
+def test_switched_off_stores_nothing(store, monkeypatch):
+    monkeypatch.setenv(program_store.ENV_SWITCH, "off")
+    model, pd = _arm()
+    jb.simulate(jb.scene(model, actuation=(pd, jnp.asarray([8.0, 1.0]))), jnp.asarray([0.4, 0.1]), jnp.zeros(2), 0.5)
+    assert not store.exists()
+
+
+def test_damaged_entry_is_traced_and_stored_again(store):
+    model, pd = _arm()
+    scene = jb.scene(model, actuation=(pd, jnp.asarray([8.0, 1.0])))
+    q0 = jnp.asarray([0.4, 0.1])
+    first = jb.simulate(scene, q0, jnp.zeros(2), 0.5)
+    (path,) = _primal_files(store)
+    path.write_bytes(b"not a stored program")
+    program_store.forget()
+    before = program_store.counts()
+    second = jb.simulate(scene, q0, jnp.zeros(2), 0.5)
+    assert program_store.counts()["stored"] - before["stored"] == 1
+    np.testing.assert_array_equal(second.q, first.q)
+    assert pickle.loads(path.read_bytes())["exported"] is not None
+
+
+def test_a_program_with_a_host_callback_is_traced(store):
+    # a progress meter calls back to the host: such a program cannot be stored
+    model, pd = _arm()
+    scene = jb.scene(model, actuation=(pd, jnp.asarray([8.0, 1.0])))
+    before = program_store.counts()
+    sol = jb.simulate(scene, jnp.asarray([0.4, 0.1]), jnp.zeros(2), 0.5, progress=True)
+    assert sol.success
+    assert program_store.counts()["declined"] - before["declined"] == 1
+    (path,) = _primal_files(store)
+    data = pickle.loads(path.read_bytes())
+    assert data["exported"] is None and "callback" in data["reason"]
+    # the marker is read, not retried
+    program_store.forget()
+    jb.simulate(scene, jnp.asarray([0.4, 0.1]), jnp.zeros(2), 0.5, progress=True)
+    assert program_store.counts()["declined"] - before["declined"] == 2
+    assert program_store.counts()["stored"] == before["stored"]
+
+
+def test_bad_input_under_grad_is_a_python_error_naming_it(store):
+    model, pd = _arm()
+    loss = _loss(model, pd, jnp.asarray([jnp.nan, 0.1]))
+    with pytest.raises(ValueError, match="q0 contains NaN or inf"):
+        jax.grad(loss)(jnp.asarray([8.0, 1.0]))
+
+
+# ---------------------------------------------------------------------------------------------
+# the fingerprint
+
+
+def _fp(*args):
+    return program_store.fingerprint("test", args)
+
+
+def _function(source: str, **globals_):
+    """A function defined by ``source`` in a module of its own (globals ``globals_``)."""
+    module = types.ModuleType(f"user_{uuid.uuid4().hex}")
+    module.__dict__.update(globals_, jnp=jnp)
+    exec(textwrap.dedent(source), module.__dict__)
+    return module.f
+
+
+def test_fingerprint_follows_code_closures_and_globals():
+    def law(k):
+        return lambda t, q, v, p: k * q
+    # the same code over equal values: one program; other values or other code: another
+    assert _fp(law(2.0)) == _fp(law(2.0))
+    assert _fp(law(2.0)) != _fp(law(3.0))
+    assert _fp(law(np.ones(2))) == _fp(law(np.ones(2)))
+    assert _fp(law(np.ones(2))) != _fp(law(np.full(2, 1.5)))
+    assert _fp(lambda q: q + 1) != _fp(lambda q: q - 1)
+    # a global array the code reads, a global function it calls, a module it names
+    a = _function("def f(q):\n    return q * W\n", W=np.ones(2))
+    b = _function("def f(q):\n    return q * W\n", W=np.full(2, 2.0))
+    assert _fp(a) != _fp(b)
+    helper = _function("def f(q):\n    return q + 1\n")
+    other = _function("def f(q):\n    return q + 2\n")
+    assert _fp(_function("def f(q):\n    return g(q)\n", g=helper)) != _fp(_function("def f(q):\n    return g(q)\n", g=other))
+    lib = types.ModuleType("user_lib")
+    lib.scale, lib.unused = 2.0, object()
+    c = _function("def f(q):\n    return lib.scale * q\n", lib=lib)
+    first = _fp(c)
+    lib.scale = 3.0
+    assert _fp(c) != first
+    # a name the code does not read does not matter
+    lib.other = 1.0
+    assert _fp(c) == _fp(c)
+
+
+def test_fingerprint_follows_a_users_class():
+    class Law(eqx.Module):
+        k: float
+
+        def __call__(self, q):
+            return self.k * q
+
+    class Other(eqx.Module):
+        k: float
+
+        def __call__(self, q):
+            return self.k * q * q
+
+    assert _fp(Law(1.0)) == _fp(Law(1.0))
+    assert _fp(Law(1.0)) != _fp(Law(2.0))
+    assert _fp(Law(1.0)) != _fp(Other(1.0))
+
+
+@pytest.mark.filterwarnings("ignore:A JAX array is being set as static")
+def test_fingerprint_takes_input_arrays_by_shape_and_constants_by_value():
+    class Holder(eqx.Module):
+        x: jax.Array
+        table: np.ndarray = eqx.field(static=True)
+
+    # an input array's values do not change the program; its shape and dtype do
+    assert _fp(Holder(jnp.ones(3), np.zeros(2))) == _fp(Holder(jnp.zeros(3), np.zeros(2)))
+    assert _fp(Holder(jnp.ones(3), np.zeros(2))) != _fp(Holder(jnp.ones(4), np.zeros(2)))
+    assert _fp(Holder(jnp.ones(3), np.zeros(2))) != _fp(Holder(jnp.ones(3, jnp.float32), np.zeros(2)))
+    # a static array is a constant of the program
+    assert _fp(Holder(jnp.ones(3), np.zeros(2))) != _fp(Holder(jnp.ones(3), np.ones(2)))
+    # Python numbers are constants too
+    assert _fp(1.0) != _fp(2.0) and _fp(1) != _fp(1.0)
+
+
+def test_fingerprint_follows_settings_and_refuses_the_unknown(monkeypatch):
+    solver = diffrax.Tsit5()
+    first = _fp(solver)
+    monkeypatch.setenv("JAXBODY_NATIVE_THREADS", "1")
+    assert _fp(solver) != first
+
+    class Opaque:  # neither a dataclass nor anything else the fingerprint knows
+        gain = 1.0
+
+    with pytest.raises(program_store.Undescribable):
+        _fp(Opaque())
+    opaque = Opaque()
+    with pytest.raises(program_store.Undescribable):
+        _fp(lambda q: q * opaque.gain)
+    # its class is described by its body
+    first = _fp(lambda q: q * Opaque.gain)
+    Opaque.gain = 2.0
+    assert _fp(lambda q: q * Opaque.gain) != first
+
+
+# ---------------------------------------------------------------------------------------------
+# a later process
+
+
+_SCRIPT = """
+import json, os, sys
+import jax
+jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp
+import jaxbody as jb
+from jaxbody import program_store
+
+offset = float(sys.argv[1])
+b = jb.ModelBuilder()
+b.add_body("upper", mass=1.0, com=(0.0, 0.0, -0.25), inertia=(0.01, 0.01, 0.001), joints=[jb.Hinge(axis=(0, 1, 0))])
+b.add_body("lower", "upper", pos=(0, 0, -0.5), mass=0.7, com=(0.0, 0.0, -0.2), inertia=(0.008, 0.008, 0.001),
+           joints=[jb.Hinge(axis=(0, 1, 0))])
+model = b.build()
+target = jnp.asarray([0.3, -0.2])
+
+def pd(t, q, v, gains):
+    return (gains[0] + offset) * (target - q) - gains[1] * v
+
+q0 = jnp.asarray([0.4, 0.1])
+
+def loss(gains):
+    sc = jb.scene(model, actuation=(pd, gains), kernel="native")
+    return jnp.sum(jb.simulate(sc, q0, jnp.zeros(2), 0.5).q[-1] ** 2)
+
+gains = jnp.asarray([8.0, 1.0])
+sol = jb.simulate(jb.scene(model, actuation=(pd, gains), kernel="native"), q0, jnp.zeros(2), 0.5)
+grad = jax.grad(loss)(gains)
+print(json.dumps({"counts": program_store.counts(), "q": [float(x) for x in sol.q[-1]], "kernel": sol.kernel,
+                  "grad": [float(x) for x in grad]}))
+"""
+
+
+def test_a_later_process_runs_the_stored_programs_without_tracing(tmp_path):
+    # the native kernel: the later process must also register the kernel's programs it calls
+    script = tmp_path / "script.py"
+    script.write_text(_SCRIPT)
+    offset = str(np.random.default_rng().uniform(0.0, 1e-3))  # a program no earlier run stored
+    env = {k: v for k, v in os.environ.items() if k != program_store.ENV_SWITCH}
+    env.pop("JAXBODY_KERNEL", None)
+
+    def run():
+        done = subprocess.run([sys.executable, str(script), offset], capture_output=True, text=True, env=env,
+                              timeout=600)
+        assert done.returncode == 0, done.stderr[-3000:]
+        return json.loads(done.stdout.strip().splitlines()[-1])
+
+    first, second = run(), run()
+    assert first["kernel"] == "native"
+    assert first["counts"]["stored"] == 2 and first["counts"]["loaded"] == 0
+    assert second["counts"]["loaded"] == 2 and second["counts"]["stored"] == 0 and second["counts"]["traced"] == 0
+    assert second["q"] == first["q"] and second["grad"] == first["grad"]
