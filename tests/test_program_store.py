@@ -88,15 +88,9 @@ def test_stored_program_gives_the_traced_results_and_gradients(store, monkeypatc
         np.testing.assert_allclose(getattr(traced, name), getattr(sol, name), rtol=0, atol=1e-14)
     assert {k: int(v) for k, v in traced.stats.items()} == {k: int(v) for k, v in sol.stats.items()}
     assert int(traced.result._value) == int(sol.result._value)
-
-
-def test_gradient_matches_finite_differences(store):
-    model, pd = _arm()
-    q0 = jnp.asarray([0.4, 0.1])
-    gains = jnp.asarray([8.0, 1.0])
-    loss = _loss(model, pd, q0)
-    grad = jax.grad(loss)(gains)
-    h = 1e-6
+    # the stored derivative against central differences of the stored solve
+    monkeypatch.delenv(program_store.ENV_SWITCH)
+    loss, h = _loss(model, pd, q0), 1e-6
     fd = [(loss(gains.at[i].add(h)) - loss(gains.at[i].add(-h))) / (2 * h) for i in range(2)]
     np.testing.assert_allclose(grad, fd, rtol=1e-6)
 
@@ -108,13 +102,12 @@ def test_traced_calls_are_left_to_the_callers_program(store):
     loss = _loss(model, pd, q0)
     eager = loss(gains)
     before = program_store.counts()
-    # jit, vmap and a gradient inside jit hold the solve in their own programs
+    # jit and vmap hold the solve in their own programs
     np.testing.assert_allclose(jax.jit(loss)(gains), eager, rtol=1e-13)
     np.testing.assert_allclose(jax.vmap(loss)(jnp.stack([gains, gains])), [eager, eager], rtol=1e-13)
-    np.testing.assert_allclose(jax.jit(jax.grad(loss))(gains), jax.grad(loss)(gains), rtol=1e-10)
     after = program_store.counts()
-    assert after["traced"] - before["traced"] >= 3
-    assert len(list(store.glob("*.pickle"))) == 2  # the eager solve and the reverse-mode one only
+    assert after["traced"] - before["traced"] == 2
+    assert len(list(store.glob("*.pickle"))) == 1  # the eager solve's only
 
 
 def test_switched_off_stores_nothing(store, monkeypatch):
