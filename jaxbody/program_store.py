@@ -39,7 +39,9 @@ from pathlib import Path
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
+from jax.custom_derivatives import SymbolicZero
 
 from .compilation_cache import cache_root
 from .ffi_targets import needed, register, targets
@@ -62,7 +64,7 @@ TRUSTED = frozenset({
 _VERSIONED = ("jax", "jaxlib", "numpy", "diffrax", "equinox", "optimistix", "lineax")
 
 # bump when the stored format changes
-_FORMAT = 2
+_FORMAT = 3
 
 
 class Undescribable(TypeError):
@@ -318,7 +320,7 @@ def _rebuild(skeleton, leaves):
 
 @dataclasses.dataclass(frozen=True)
 class _Entry:
-    exported: object  # jax.export.Exported, or a derivative's two (forward and reverse passes)
+    exported: object  # jax.export.Exported
     outputs: object  # the outputs' skeleton
     notes: tuple  # the registrations the program needs (ffi_targets.needed)
 
@@ -381,67 +383,79 @@ def _specs(leaves) -> list:
     return [jax.ShapeDtypeStruct(shape, dtype, weak_type=weak) for shape, dtype, weak in map(_aval, leaves)]
 
 
-def _export_derivative(fn, args, leaves, treedef, primal: _Entry, mask) -> _Entry:
-    """The reverse derivative of ``fn(*args)`` (stored as ``primal``) with respect to the input
-    arrays ``mask`` marks, as two programs, as JAX itself differentiates: the forward pass,
-    which returns the outputs and the residuals of their linearisation, and the reverse pass,
-    of the residuals and the cotangents of the inexact outputs, which returns the cotangents of
-    the marked inputs. (One program of both passes compiled 1.5x as long for the rolling disk.)"""
-    outputs = primal.exported.out_avals
-    inexact = [np.issubdtype(a.dtype, np.inexact) for a in outputs]
-    static_part = eqx.partition(args, eqx.is_array)[1]
-    linearisation = []  # the structure of the forward pass's pullback (its leaves: the residuals)
+def _reverse_function(fn, static_part, treedef, n_out, in_mask, out_mask):
+    """The reverse derivative of ``fn`` as a function of its input arrays and the cotangents
+    of the outputs ``out_mask`` marks (of ``n_out``), returning the cotangents of the inputs
+    ``in_mask`` marks: ``jax.vjp`` of ``fn``, whose forward pass it runs again (the forward pass
+    the caller sees is the primal program), restricted to the outputs that carry a cotangent
+    (the rest of the forward pass is dead code to XLA: a loss of the final state alone does not
+    differentiate the energies and reactions of the saved states)."""
+    n_in = len(in_mask)
 
-    def forward(*arrays):
+    def reverse(*arrays_and_cotangents):
+        arrays, cotangents = arrays_and_cotangents[:n_in], arrays_and_cotangents[n_in:]
+
         def marked(*diff):
             it = iter(diff)
-            full = [next(it) if m else a for a, m in zip(arrays, mask)]
+            full = [next(it) if m else a for a, m in zip(arrays, in_mask)]
             out: list = []
             _skeleton(fn(*eqx.combine(jax.tree.unflatten(treedef, full), static_part)), out)
-            return [o for o, f in zip(out, inexact) if f], out
+            assert len(out) == n_out
+            return [o for o, keep in zip(out, out_mask) if keep]
 
-        _, pullback, out = jax.vjp(marked, *(a for a, m in zip(arrays, mask) if m), has_aux=True)
-        residuals, structure = jax.tree.flatten(pullback)
-        linearisation.append(structure)
-        return out, residuals
+        _, pullback = jax.vjp(marked, *(a for a, m in zip(arrays, in_mask) if m))
+        return list(pullback(list(cotangents)))
 
-    def backward(residuals, cotangents):
-        return list(jax.tree.unflatten(linearisation[-1], residuals)(list(cotangents)))
-
-    forward_program = _exported(jax.jit(forward), _specs(leaves))
-    residuals = forward_program.out_avals[len(outputs):]
-    cotangents = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a, f in zip(outputs, inexact) if f]
-    backward_program = _exported(jax.jit(backward), ([jax.ShapeDtypeStruct(a.shape, a.dtype) for a in residuals],
-                                                     cotangents))
-    return _Entry((forward_program, backward_program), None,
-                  tuple(dict.fromkeys(_needed(forward_program) + _needed(backward_program))))
+    return reverse
 
 
-def _differentiated(primal: _Entry, reverse: _Entry, leaves, mask):
-    """The primal program's outputs as a function JAX differentiates in reverse mode through
-    the stored passes ``reverse`` (``jax.custom_vjp``); the unmarked inputs are constants."""
-    inexact = [np.issubdtype(a.dtype, np.inexact) for a in primal.exported.out_avals]
-    forward_program, backward_program = reverse.exported
-    constants = [None if m else x for x, m in zip(leaves, mask)]
+def _export_derivative(fn, args, leaves, treedef, primal: _Entry, mask) -> _Entry:
+    """The program of :func:`_reverse_function` (``mask``: the input and output masks)."""
+    in_mask, out_mask = mask
+    outputs = primal.exported.out_avals
+    reverse = _reverse_function(fn, eqx.partition(args, eqx.is_array)[1], treedef, len(outputs), in_mask, out_mask)
+    specs = _specs(leaves) + [jax.ShapeDtypeStruct(a.shape, a.dtype) for a, keep in zip(outputs, out_mask) if keep]
+    exported = _exported(jax.jit(reverse), specs)
+    return _Entry(exported, None, _needed(exported))
+
+
+def _differentiated(fn, args, name, primal: _Entry, leaves, treedef, static_part, in_mask):
+    """The primal program's outputs as a function JAX differentiates in reverse mode through a
+    stored reverse program (``jax.custom_vjp``), found or made when the cotangents arrive: one
+    per set of outputs that carry one. The unmarked inputs are constants."""
+    outputs = primal.exported.out_avals
+    inexact = [np.issubdtype(a.dtype, np.inexact) for a in outputs]
+    constants = [None if m else x for x, m in zip(leaves, in_mask)]
 
     def full(diff):
         it = iter(diff)
-        return [next(it) if m else c for c, m in zip(constants, mask)]
+        return [next(it) if m else c for c, m in zip(constants, in_mask)]
 
     @jax.custom_vjp
     def run(diff):
         return tuple(primal.exported.call(*full(diff)))
 
     def run_fwd(diff):
-        out, residuals = forward_program.call(*full(diff))
-        return tuple(out), tuple(residuals)
+        values = tuple(d.value for d in diff)
+        return tuple(primal.exported.call(*full(values))), values
 
-    def run_bwd(residuals, cotangents):
-        kept = [c for c, f in zip(cotangents, inexact) if f]
-        return (tuple(backward_program.call(list(residuals), kept)),)
+    def run_bwd(values, cotangents):
+        out_mask = tuple(f and not isinstance(c, SymbolicZero) for c, f in zip(cotangents, inexact))
+        if not any(out_mask):
+            return (tuple(jnp.zeros_like(v) for v in values),)
+        kept = [c for c, keep in zip(cotangents, out_mask) if keep]
+        mask = (in_mask, out_mask)
+        entry = _entry(fn, args, name, leaves, treedef, static_part, mask, primal)
+        if entry is None:  # not stored: the same derivative, traced
+            _counts["traced"] += 1
+            reverse = _reverse_function(fn, static_part, treedef, len(outputs), in_mask, out_mask)
+            return (tuple(jax.jit(reverse)(*full(values), *kept)),)
+        register(entry.notes)
+        return (tuple(entry.exported.call(*full(values), *kept)),)
 
-    run.defvjp(run_fwd, run_bwd)
-    return run(tuple(x for x, m in zip(leaves, mask) if m))
+    # symbolic zeros: the outputs no cotangent reaches are known to the reverse pass
+    run.defvjp(run_fwd, run_bwd, symbolic_zeros=True)
+    return run(tuple(x for x, m in zip(leaves, in_mask) if m))
 
 
 def _read(path: Path):
@@ -456,10 +470,9 @@ def _read(path: Path):
     if data.get("exported") is None:
         return False  # a program that cannot be stored: trace it
     try:
-        programs = tuple(jax.export.deserialize(bytearray(b)) for b in data["exported"])
+        exported = jax.export.deserialize(bytearray(data["exported"]))
     except Exception:  # noqa: BLE001
         return None
-    exported = programs[0] if len(programs) == 1 else programs
     return _Entry(exported, data["outputs"], tuple(data["notes"]))
 
 
@@ -468,8 +481,7 @@ def _write(path: Path, entry: "_Entry | None", reason: str = "") -> None:
         if entry is None:
             data = {"format": _FORMAT, "exported": None, "reason": reason}
         else:
-            programs = entry.exported if isinstance(entry.exported, tuple) else (entry.exported,)
-            data = {"format": _FORMAT, "exported": [bytes(p.serialize()) for p in programs], "outputs": entry.outputs,
+            data = {"format": _FORMAT, "exported": bytes(entry.exported.serialize()), "outputs": entry.outputs,
                     "notes": list(entry.notes)}
     except ImportError:  # jax.export's serialiser needs the flatbuffers package: kept in memory only
         return
@@ -522,11 +534,7 @@ def call(fn, args: tuple, name: str):
     if not any(mask):
         outputs = primal.exported.call(*leaves)
     else:
-        reverse = _entry(fn, args, name, leaves, treedef, static_part, mask, primal)
-        if reverse is None:
-            return _traced(fn, args)
-        register(reverse.notes)
-        outputs = _differentiated(primal, reverse, leaves, mask)
+        outputs = _differentiated(fn, args, name, primal, leaves, treedef, static_part, mask)
     return _rebuild(primal.outputs, iter(outputs))
 
 
