@@ -22,7 +22,8 @@ reused only when the fingerprint proves it is the one tracing would give. So do 
 are traced (inside the user's ``jit``, ``vmap`` or ``grad``, where the user's program holds the
 solve) and programs that cannot be exported (a host callback: a progress meter).
 
-``JAXBODY_PROGRAM_STORE=0`` (or ``off``, ``false``, ``no``) turns the store off.
+The store is bounded (:data:`MAX_BYTES`; the least recently used programs go first).
+``JAXBODY_PROGRAM_STORE=0`` (or ``off``, ``false``, ``no``) turns it off.
 """
 
 import dataclasses
@@ -46,7 +47,7 @@ from jax.custom_derivatives import SymbolicZero
 from .compilation_cache import cache_root
 from .ffi_targets import needed, register, targets
 
-__all__ = ["ENV_SWITCH", "TRUSTED", "Undescribable", "call", "counts", "describe", "enabled", "fingerprint", "forget",
+__all__ = ["ENV_SWITCH", "MAX_BYTES", "TRUSTED", "Undescribable", "call", "counts", "describe", "enabled", "fingerprint", "forget",
            "store_dir"]
 
 #: The environment variable that turns the store off (``0``, ``off``, ``false``, ``no``).
@@ -62,6 +63,9 @@ TRUSTED = frozenset({
 
 # the packages a solve is traced through: their versions key every program
 _VERSIONED = ("jax", "jaxlib", "numpy", "diffrax", "equinox", "optimistix", "lineax")
+
+#: Size bound of the store (bytes): past it, the least recently used programs are removed.
+MAX_BYTES = 512 * 1024**2
 
 # bump when the stored format changes
 _FORMAT = 3
@@ -467,6 +471,10 @@ def _read(path: Path):
         return None
     if not isinstance(data, dict) or data.get("format") != _FORMAT:
         return None
+    try:
+        os.utime(path)  # used now: the last to be removed when the store is full
+    except OSError:
+        pass
     if data.get("exported") is None:
         return False  # a program that cannot be stored: trace it
     try:
@@ -492,7 +500,30 @@ def _write(path: Path, entry: "_Entry | None", reason: str = "") -> None:
         tmp.write_bytes(pickle.dumps(data))
         os.replace(tmp, path)
     except OSError:  # a read-only cache: the program is traced again next time
-        pass
+        return
+    _bound(path.parent)
+
+
+def _bound(directory: Path) -> None:
+    """Remove the least recently used programs of ``directory`` until it holds at most
+    :data:`MAX_BYTES` (another process may remove the same ones: errors are ignored)."""
+    try:
+        entries = []
+        for entry in os.scandir(directory):
+            if entry.name.endswith(".pickle"):
+                stat = entry.stat()
+                entries.append((stat.st_mtime, stat.st_size, entry.path))
+    except OSError:
+        return
+    total = sum(size for _, size, _ in entries)
+    for _, size, path in sorted(entries):
+        if total <= MAX_BYTES:
+            break
+        try:
+            os.remove(path)
+        except OSError:
+            pass
+        total -= size
 
 
 def _local_key(name, leaves, treedef, static_part):

@@ -60,6 +60,12 @@ if not os.environ.get("JAX_COMPILATION_CACHE_DIR"):
 # ./run tests`` runs it on the default); the processes it starts inherit the choice. Tests of
 # the default itself remove the variable (test_scene.py, test_backends_native.py).
 os.environ.setdefault("JAXBODY_KERNEL", "vectorised")
+# Likewise the suite traces its solves rather than storing each as a program
+# (jaxbody.program_store): exporting and writing hundreds of one-off programs added about a
+# tenth to the simulation tests' time (tests/test_simulation.py and test_simulation_features.py:
+# 65 s to 78 s on 2 workers). test_program_store.py turns the store on for its own tests;
+# ``JAXBODY_PROGRAM_STORE=1 ./run tests`` runs the whole suite on the default.
+os.environ.setdefault("JAXBODY_PROGRAM_STORE", "0")
 
 import jax
 import pytest

@@ -132,6 +132,20 @@ def test_damaged_entry_is_traced_and_stored_again(store):
     assert pickle.loads(path.read_bytes())["exported"] is not None
 
 
+def test_the_store_is_bounded_least_recently_used_first(store, monkeypatch):
+    model, pd = _arm()
+    q0 = jnp.asarray([0.4, 0.1])
+    scene = jb.scene(model, actuation=(pd, jnp.asarray([8.0, 1.0])))
+    jb.simulate(scene, q0, jnp.zeros(2), 0.5)
+    (first,) = _primal_files(store)
+    os.utime(first, (1.0, 1.0))  # long unused
+    # room for one program: storing a second removes the first
+    monkeypatch.setattr(program_store, "MAX_BYTES", first.stat().st_size + 1)
+    jb.simulate(scene, q0, jnp.zeros(2), 0.25, n_save=5)
+    files = _primal_files(store)
+    assert len(files) == 1 and files[0] != first
+
+
 def test_a_program_with_a_host_callback_is_traced(store):
     # a progress meter calls back to the host: such a program cannot be stored
     model, pd = _arm()
