@@ -69,6 +69,7 @@ __all__ = [
     "passive_forces_at",
     "project_force_factors",
     "spring_displacements",
+    "spring_dofs",
     "uniform_field_force",
     "body_wrench_force",
 ]
@@ -339,29 +340,49 @@ def _quat_log_diff(qa, qb):
     return d[..., 1:] * scale
 
 
+def spring_dofs(model: Model) -> list[tuple[np.ndarray, ArrayLike]]:
+    """The DoFs each group of joint springs acts on and the stiffness of its joints, in the order
+    of :func:`spring_displacements`: ``(dofs, stiffness)`` with ``dofs`` ``(n, m)`` DoF indices
+    (``m`` = 1 for a hinge or slide, 3 for a translation or a rotation) of ``n`` joints. No
+    configuration is needed (a stiffness estimate reads the layout alone)."""
+    out = []
+    for kind, js, _, da in model.joints.kind_groups():
+        k = model.joint_stiffness[js]
+        if kind.quaternion is None:
+            out.append((da[:, None], k))
+            continue
+        if kind.translation:
+            out.append((da[:, None] + np.arange(kind.translation), k))
+        out.append((da[:, None] + kind.translation + np.arange(3), k))
+    return out
+
+
 def spring_displacements(model: Model, q: Float[Array, " nq"]) -> list[tuple[np.ndarray, Array, Array]]:
     """Joint-spring displacements ``q ⊖ q_spring`` from the spring reference, per joint kind.
 
     A list of ``(dofs, displacement, stiffness)``: the DoF indices ``(n, m)`` the displacement
     acts on, the displacements ``(n, m)`` (a coordinate's difference; for the rotation of a
     ball or free joint the rotation vector of ``q_spring⁻¹ ⊗ q/|q|``, MuJoCo ``mju_subQuat``)
-    and the stiffness of each of the ``n`` joints. The springs' generalized force is
-    ``τ[dofs] = −k · displacement`` and their energy ``½ k |displacement|²``
+    and the stiffness of each of the ``n`` joints (:func:`spring_dofs`). The springs'
+    generalized force is ``τ[dofs] = −k · displacement`` and their energy ``½ k |displacement|²``
     (:func:`passive_forces_at`, :func:`potential_energy`, :class:`jaxbody.JointSprings`).
     """
     out = []  # (dof indices, displacement, stiffness per dof)
-    for kind, js, qa, da in model.joints.kind_groups():
-        k = model.joint_stiffness[js]
+    layout = iter(spring_dofs(model))
+    for kind, _, qa, _ in model.joints.kind_groups():
         if kind.quaternion is None:
-            out.append((da[:, None], (q[qa] - model.qpos_spring[qa])[:, None], k))
+            dofs, k = next(layout)
+            out.append((dofs, (q[qa] - model.qpos_spring[qa])[:, None], k))
             continue
         n = kind.translation
         if n:
+            dofs, k = next(layout)
             idx = qa[:, None] + np.arange(n)
-            out.append((da[:, None] + np.arange(n), q[idx] - model.qpos_spring[idx], k))
+            out.append((dofs, q[idx] - model.qpos_spring[idx], k))
+        dofs, k = next(layout)
         idx = qa[:, None] + kind.quaternion + np.arange(4)
         qn = q[idx] / jnp.linalg.norm(q[idx], axis=-1, keepdims=True)
-        out.append((da[:, None] + n + np.arange(3), _quat_log_diff(qn, model.qpos_spring[idx]), k))
+        out.append((dofs, _quat_log_diff(qn, model.qpos_spring[idx]), k))
     return out
 
 

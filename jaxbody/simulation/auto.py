@@ -36,7 +36,7 @@ import scipy.linalg
 from .._util import is_concrete
 from ..backends import scalar
 from ..effects import JointDampers, JointSprings
-from ..kernels import spring_displacements
+from ..kernels import spring_dofs
 from ..model import Model
 
 __all__ = [
@@ -132,9 +132,11 @@ def _mass_matrix(scene, q) -> np.ndarray:
     computes the dynamics, by polarisation of the kinetic energy ``T(v) = ½ vᵀMv``:
     ``M_ii = 2 T(e_i)`` and ``M_ij = T(e_i + e_j) − T(e_i) − T(e_j)`` (exact for a quadratic form
     up to rounding, ample for an estimate of the fastest mode). A tree in its joint coordinates
-    has its own on the host (:func:`_tree_mass_matrix`)."""
+    has its own on the host (:func:`_tree_mass_matrix`), and so has a spatial scene of a tree
+    whatever its effects and constraints (its kinetic energy is the tree's; loops and other
+    constraints restrict the velocities, not the metric)."""
     nv = scene.nv
-    model = scene.system if scene.is_direct() else None
+    model = scene.system if scene.path == "spatial" else None
     # concrete parameters of one model (not traced, not a batch of models)
     if isinstance(model, Model) and model.nv == nv and is_concrete(model) and np.ndim(model.body_mass) == 1:
         return _tree_mass_matrix(model, q)
@@ -184,8 +186,9 @@ def _estimate(scene, q, springs, dampers):
     nv = scene.nv
     K = np.zeros((nv, nv))
     for e in springs:
-        model = eqx.tree_at(lambda m: (m.joint_stiffness, m.qpos_spring), scene.model, (e.stiffness, e.reference))
-        for dofs, _, k in spring_displacements(model, jnp.asarray(q)):
+        model = eqx.tree_at(lambda m: m.joint_stiffness, scene.model, np.asarray(e.stiffness, float))
+        # the layout alone (no displacement computed: its operations would run one by one)
+        for dofs, k in spring_dofs(model):
             dofs = np.asarray(dofs)
             K[dofs, dofs] += np.broadcast_to(np.asarray(k, float)[:, None], dofs.shape)
     C = np.zeros((nv, nv))
