@@ -198,7 +198,7 @@ def test_host_mass_matrix_of_the_estimate_equals_mujoco(models_dir, name):
 def test_estimate_of_a_scene_with_loops_reads_the_trees_mass_matrix():
     """A spatial scene with loops (the Cassie-like biped: ball joints, four ``<connect>`` loops,
     springs) has the tree's kinetic energy: the estimate takes the tree's mass matrix on the host
-    (before, the energies of 171 velocities were traced, compiled and run, and the springs'
+    (before, the energies of 528 velocities were traced, compiled and run, and the springs'
     displacements computed one operation at a time: 3.5 s of a warm first simulation), which
     equals MuJoCo's ``mj_fullM``; the springs' stiffness lands on their DoFs."""
     import mujoco
