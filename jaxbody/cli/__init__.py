@@ -48,6 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``jaxbody`` command; returns the exit status."""
+    from_command_line = argv is None
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] == "balance":
         # Everything after `balance` belongs to the balance command's own parser.
@@ -65,6 +66,13 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         error_line(args.command, "interrupted")
+        if from_command_line:
+            # the interrupt can abandon a computation XLA is still running on its own threads,
+            # and tearing the interpreter down under it crashed the process now and then
+            # (SIGSEGV instead of status 130); the files are written and closed: leave at once
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(130)
         return 130
     except Exception as e:  # never a traceback on the command line, unless asked for
         if os.environ.get("JAXBODY_DEBUG"):
