@@ -4,6 +4,7 @@ program is a function of."""
 
 import json
 import os
+import pathlib
 import pickle
 import subprocess
 import sys
@@ -280,17 +281,10 @@ import jax.numpy as jnp
 import jaxbody as jb
 from jaxbody import program_store
 
-offset = float(sys.argv[1])
-b = jb.ModelBuilder()
-b.add_body("upper", mass=1.0, com=(0.0, 0.0, -0.25), inertia=(0.01, 0.01, 0.001), joints=[jb.Hinge(axis=(0, 1, 0))])
-b.add_body("lower", "upper", pos=(0, 0, -0.5), mass=0.7, com=(0.0, 0.0, -0.2), inertia=(0.008, 0.008, 0.001),
-           joints=[jb.Hinge(axis=(0, 1, 0))])
-model = b.build()
-target = jnp.asarray([0.3, -0.2])
+sys.path.insert(0, sys.argv[2])
+from test_program_store import _arm  # the arm and PD law of the in-process tests
 
-def pd(t, q, v, gains):
-    return (gains[0] + offset) * (target - q) - gains[1] * v
-
+model, pd = _arm(float(sys.argv[1]))
 q0 = jnp.asarray([0.4, 0.1])
 
 def loss(gains):
@@ -314,8 +308,8 @@ def test_a_later_process_runs_the_stored_programs_without_tracing(tmp_path):
     env.pop("JAXBODY_KERNEL", None)
 
     def run():
-        done = subprocess.run([sys.executable, str(script), offset], capture_output=True, text=True, env=env,
-                              timeout=600)
+        done = subprocess.run([sys.executable, str(script), offset, str(pathlib.Path(__file__).parent)],
+                              capture_output=True, text=True, env=env, timeout=600)
         assert done.returncode == 0, done.stderr[-3000:]
         return json.loads(done.stdout.strip().splitlines()[-1])
 

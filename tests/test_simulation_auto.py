@@ -18,6 +18,7 @@ import pytest
 import scipy.linalg
 
 import jaxbody as jb
+from jaxbody.kernels import spring_displacements, spring_dofs
 from jaxbody.simulation import auto
 
 M, COM, IC = 0.5, 0.1, 0.002  # link mass (kg), hinge-to-centre distance (m), central inertia (kg·m²)
@@ -186,13 +187,21 @@ def test_host_mass_matrix_of_the_estimate_equals_mujoco(models_dir, name):
     q = np.asarray(model.qpos0, np.float64) + 0.3 * rng.standard_normal(model.nq)
     if model.nq != model.nv:  # the free base's unit quaternion
         q[3:7] /= np.linalg.norm(q[3:7])
+    M = _mujoco_mass_matrix(path, q)
+    np.testing.assert_allclose(auto._tree_mass_matrix(model, q), M, rtol=0, atol=1e-12 * np.abs(M).max())
+
+
+def _mujoco_mass_matrix(path, q):
+    """MuJoCo's ``mj_fullM`` of the MJCF at ``path`` at ``qpos = q``."""
+    import mujoco
+
     m = mujoco.MjModel.from_xml_path(str(path))
     d = mujoco.MjData(m)
     d.qpos[:] = q
     mujoco.mj_forward(m, d)
     M = np.zeros((m.nv, m.nv))
     mujoco.mj_fullM(m, d, M)
-    np.testing.assert_allclose(auto._tree_mass_matrix(model, q), M, rtol=0, atol=1e-12 * np.abs(M).max())
+    return M
 
 
 def test_estimate_of_a_scene_with_loops_reads_the_trees_mass_matrix():
@@ -200,9 +209,7 @@ def test_estimate_of_a_scene_with_loops_reads_the_trees_mass_matrix():
     springs) has the tree's kinetic energy: the estimate takes the tree's mass matrix on the host
     (before, the energies of 528 velocities were traced, compiled and run, and the springs'
     displacements computed one operation at a time: 3.5 s of a warm first simulation), which
-    equals MuJoCo's ``mj_fullM``; the springs' stiffness lands on their DoFs."""
-    import mujoco
-
+    equals MuJoCo's ``mj_fullM``; the springs' layout it reads is the one their displacements use."""
     path = pathlib.Path(jb.__file__).parent / "models" / "cassie_like.xml"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -210,12 +217,14 @@ def test_estimate_of_a_scene_with_loops_reads_the_trees_mass_matrix():
         scene = jb.scene(model)
     assert scene.constraints is not None and scene.path == "spatial"
     q = np.asarray(model.qpos0, np.float64)
-    m = mujoco.MjModel.from_xml_path(str(path))
-    d = mujoco.MjData(m)
-    d.qpos[:] = q
-    mujoco.mj_forward(m, d)
-    M = np.zeros((m.nv, m.nv))
-    mujoco.mj_fullM(m, d, M)
+    M = _mujoco_mass_matrix(path, q)
     np.testing.assert_allclose(auto._mass_matrix(scene, q), M, rtol=0, atol=1e-12 * np.abs(M).max())
+    layout = spring_dofs(model)
+    displacements = spring_displacements(model, jnp.asarray(q))
+    assert len(layout) == len(displacements) and any(np.asarray(d).shape[1] == 3 for d, _ in layout)
+    for (dofs, k), (dofs_d, disp, k_d) in zip(layout, displacements):
+        np.testing.assert_array_equal(dofs, dofs_d)
+        np.testing.assert_array_equal(k, k_d)
+        assert np.shape(disp) == np.shape(dofs)
     estimate = auto.stiffness_estimate(scene, q)
     assert estimate is not None and estimate["omega"] > 0
