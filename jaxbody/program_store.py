@@ -115,7 +115,7 @@ class _Describer:
     """One fingerprint: :meth:`__call__` describes a value as nested tuples of plain data."""
 
     def __init__(self):
-        self._seen: dict = {}  # id -> its index: a value met again (or in a cycle) is a reference
+        self._seen: dict = {}  # (id, how described) -> its index
 
     def __call__(self, x, static: bool = True, names: frozenset = frozenset()):
         # `static`: arrays are described by value (constants of the program) rather than by
@@ -131,12 +131,14 @@ class _Describer:
             return ("value", value.shape, str(value.dtype), hashlib.sha256(value.tobytes()).hexdigest())
         if isinstance(x, np.dtype):
             return ("dtype", str(x))
-        key = id(x)
+        # a value met again is a reference to its first description, if it was described the
+        # same way: as a constant or an input, and a module with the same attribute names
+        key = (id(x), static, names if isinstance(x, types.ModuleType) else None)
         if key in self._seen:
             return ("ref", self._seen[key])
         self._seen[key] = len(self._seen)
         # keep the object alive while its id stands for it
-        self._seen[("keep", key)] = x
+        self._seen[("keep",) + key] = x
         if isinstance(x, (tuple, list)) and not hasattr(x, "_fields"):
             return (type(x).__name__, tuple(self(v, static, names) for v in x))
         if isinstance(x, tuple):  # a named tuple

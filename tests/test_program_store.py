@@ -213,6 +213,12 @@ def test_fingerprint_follows_code_closures_and_globals():
     # a name the code does not read does not matter
     lib.other = 1.0
     assert _fp(c) == _fp(c)
+    # two functions reading different names of one module: each name counts
+    d = _function("def f(q):\n    return lib.offset + q\n", lib=lib)
+    lib.offset = 0.0
+    first = _fp(c, d)
+    lib.offset = 1.0
+    assert _fp(c, d) != first
 
 
 def test_fingerprint_follows_a_users_class():
@@ -247,6 +253,16 @@ def test_fingerprint_takes_input_arrays_by_shape_and_constants_by_value():
     assert _fp(Holder(jnp.ones(3), np.zeros(2))) != _fp(Holder(jnp.ones(3), np.ones(2)))
     # Python numbers are constants too
     assert _fp(1.0) != _fp(2.0) and _fp(1) != _fp(1.0)
+
+    # one object both an input and a constant (held in a static field): its values count
+    class Inner(eqx.Module):
+        x: jax.Array
+
+    class Outer(eqx.Module):
+        inner: Inner = eqx.field(static=True)
+
+    a, b = Inner(jnp.zeros(2)), Inner(jnp.ones(2))
+    assert _fp(a, Outer(a)) != _fp(b, Outer(b))
 
 
 def test_fingerprint_follows_settings_and_refuses_the_unknown(monkeypatch):
