@@ -142,6 +142,34 @@ def test_scene_forward_dynamics_against_mujoco_connect(cassie):
         np.testing.assert_allclose(np.asarray(s.axes) @ R.T @ fw, f, rtol=0, atol=2e-3 * np.abs(f_world).max())
 
 
+def test_loop_velocity_bias_in_closed_form_equals_forward_mode(cassie):
+    """``γ = Ġ v`` of every loop row, in closed form from the bodies' accelerations, equals
+    forward-mode differentiation of the rows along ``q̇ = π(q, v)``: at random states off the
+    loops (ball joints, the floating base, rows in the frames of the loops' common ancestors),
+    and for loops closed to the world and between two bodies in world axes."""
+    from jaxbody.kinematics import normalize_qpos
+
+    model, scene = cassie
+    cs = scene.constraints.on_model(model)
+    foot = model.loops[0].body_b
+    extra = [jc.LoopClosure(model, foot, (0.01, -0.02, 0.03), -1, (0.1, 0.2, 0.3)),
+             jc.LoopClosure(model, foot, (0.0, 0.05, 0.0), 1, (0.02, 0.0, -0.1), axes=((1.0, 1.0, 0.0), (0.0, 0.0, 1.0)))]
+    rng = np.random.default_rng(5)
+    t = jnp.asarray(0.0)
+    for _ in range(3):
+        q = normalize_qpos(model, model.qpos0 + 0.4 * rng.standard_normal(model.nq))
+        v = jnp.asarray(rng.standard_normal(model.nv))
+        qd = cs.base.qdot(q, v)
+        forward = jax.jvp(lambda tt, qq: cs.constraint_residual(tt, qq, v), (t, q), (jnp.ones_like(t), qd))[1]
+        closed = cs.constraint_velocity_bias(t, q, v)
+        assert float(jnp.max(jnp.abs(forward))) > 0.1
+        np.testing.assert_allclose(closed, forward, rtol=0, atol=1e-12 * float(jnp.max(jnp.abs(forward))))
+        for c in extra:
+            reference = jax.jvp(lambda qq: c.velocity(cs.base, t, qq, v), (q,), (qd,))[1]
+            np.testing.assert_allclose(c.velocity_bias(cs.base, t, q, v), reference, rtol=0,
+                                       atol=1e-12 * float(jnp.max(jnp.abs(reference))))
+
+
 def test_initial_positions_checked_and_projected(cassie):
     """Off the loops: ``maggi.initial_state`` names the rows at fault; with ``project_initial``
     Newton's method in the joint velocities puts ``q`` back on them with unit quaternions."""

@@ -17,8 +17,11 @@ import pytest
 from jaxbody._xla import default_xla_flags
 
 NOTEBOOKS = sorted((pathlib.Path(__file__).resolve().parents[1] / "notebooks").glob("*.ipynb"))
-# the two longest (75-100 s each on 2 cores) run in the slow job; the rest in the default suite
-SLOW_NOTEBOOKS = {"04_disk_on_a_plane.ipynb", "06_parameter_identification.ipynb"}
+# the longest run in the slow job, the rest in the default suite: 04 and 06 (75-100 s each on 2
+# cores), 01 and 07 (16-28 s; the paper's examples they show are checked in test_examples_*.py,
+# test_planar*.py and test_maggi.py, the accuracy study's choices in test_simulation_auto.py)
+SLOW_NOTEBOOKS = {"01_paper_examples.ipynb", "04_disk_on_a_plane.ipynb", "06_parameter_identification.ipynb",
+                  "07_accuracy_vs_time.ipynb"}
 CELL_TIMEOUT_S = 300
 KERNEL_NAME = "jaxbody-tests"
 

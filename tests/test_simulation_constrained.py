@@ -171,6 +171,7 @@ class PointMass(maggi.QuasiVelocitySystem):
         return qd
 
 
+@pytest.mark.slow  # 11-12 s; test_simulation_partitioning.py checks a repartitioned solve's gradient by default
 def test_reverse_mode_gradient_through_repartitioning_solve():
     """``jax.grad`` with the default checkpointed adjoint through a constrained solve whose
     coordinate partition changes on the way (a Cartesian pendulum swinging past the

@@ -166,6 +166,7 @@ def _gradient_setup(name, monkeypatch, saveat=diffrax.SaveAt(t1=True)):
     return model, loss, q0, v0, calls
 
 
+@pytest.mark.slow  # 11-12 s; the sweep's gradients are checked by default against central differences (next test)
 def test_native_reverse_sweep_gradient_equals_the_stepped_solve(monkeypatch):
     """The gradient with respect to (q0, v0) of the states saved at requested times (through each
     step's dense output) and at the end, with the dampers' work, through the native reverse

@@ -126,6 +126,24 @@ class ConstrainedSystem(eqx.Module):
             return jnp.zeros((0,), jnp.asarray(x).dtype)
         return jnp.concatenate([c.velocity(self.base, t, q, x) for c in self.constraints])
 
+    def constraint_velocity_bias(self, t, q, x) -> Array:
+        """``γ = ∂f*/∂q·q̇ + ∂f*/∂t`` at fixed ``x`` (M.6), all rows (s,): each constraint's
+        closed form (:meth:`Constraint.velocity_bias`) where it gives one, else a forward-mode
+        product along ``q̇ = π(q, x)`` (``∂f*/∂q`` never formed)."""
+        qd = self.base.qdot(q, x)
+
+        def differentiated(residual):
+            return jax.jvp(lambda tt, qq: residual(tt, qq, x), (t, q), (jnp.ones_like(t), qd))[1]
+
+        closed = [c.velocity_bias(self.base, t, q, x) for c in self.constraints]
+        if all(b is None for b in closed):
+            # one product for all rows: the program of systems without closed forms as before
+            return differentiated(self.constraint_residual)
+        return jnp.concatenate([
+            differentiated(lambda tt, qq, xx, c=c: c.velocity(self.base, tt, qq, xx)) if b is None
+            else jnp.reshape(b, (c.size,)) for c, b in zip(self.constraints, closed)
+        ])
+
     @compiled_when_eager
     def position_residual(self, t, q) -> Array:
         """``φ(t, q)`` of the holonomic rows, zero on non-holonomic rows (s,)."""
@@ -237,14 +255,7 @@ class ConstrainedSystem(eqx.Module):
         n, s = self.nv, self.n_constraint
         A, K, ratio = self.parametrisation(t, q, x)
         if s:
-            qd = self.base.qdot(q, x)
-            # γ = ∂f*/∂q·q̇ + ∂f*/∂t at fixed x (M.6): one forward-mode product, ∂f*/∂q never formed
-            f_dot0 = jax.jvp(
-                lambda tt, qq: self.constraint_residual(tt, qq, x),
-                (t, q),
-                (jnp.ones_like(t), qd),
-            )[1]
-            gamma = f_dot0
+            gamma = self.constraint_velocity_bias(t, q, x)
             # Baumgarte (M.13): residuals obey φ̈ + 2ωφ̇ + ω²φ = 0; exact solutions (φ = f* = 0) are unchanged
             if stabilise:
                 w = self.baumgarte

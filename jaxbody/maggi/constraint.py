@@ -35,6 +35,14 @@ class Constraint(eqx.Module):
     def position(self, base, t, q) -> Array | None:
         return None
 
+    # None: the reduced dynamics differentiates velocity() in forward mode. A constraint whose
+    # rows come from the kinematics can say it in closed form: the forward-mode derivative of
+    # the kinematics is most of a solve's compiled program and of its run time
+    def velocity_bias(self, base, t, q, x) -> Array | None:
+        """``γ = ∂f*/∂q·q̇ + ∂f*/∂t`` at fixed ``x`` (M.6), the part of ``df*/dt`` that ``ẋ`` does
+        not carry, in closed form; ``None`` (the default) to have it differentiated."""
+        return None
+
     @property
     def size(self) -> int:
         raise NotImplementedError
