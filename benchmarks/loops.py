@@ -5,8 +5,10 @@ floating base, ball joints, four ``<connect>`` loops, joint springs), in a fresh
 
 Measures: ``jb.from_mjcf`` (import, the loops' directions included), ``jb.scene`` (the loops
 checked and partitioned), the first ``jb.simulate`` of 1 s from the ``home`` keyframe (compile
-and run), the same simulation again (after compilation), and one evaluation of the constrained
-vector field against the same scene without its loops (``constraints=None``). Writes
+and run), the same simulation again (after compilation), one evaluation of the constrained
+vector field against the same scene without its loops (``constraints=None``), and the vector
+field's XLA compile and evaluation with the loops' rate term in closed form against the same
+term differentiated in forward mode. Writes
 ``benchmarks/results/loops.json`` and ``loops.md``.
 """
 
@@ -104,7 +106,55 @@ def child(t1: float) -> dict:
         f(q0, v0).block_until_ready()
         out[f"field_{name}_us"] = 1e6 * time_per_call(lambda f=f: f(q0, v0).block_until_ready())["median_s"]
     out["field_ratio"] = out["field_constrained_us"] / out["field_open_us"]
+    out.update(bias_forms(scene, q0, v0))
     out.update(field_ratio())
+    return out
+
+
+def bias_forms(scene, q, v) -> dict:
+    """XLA compile seconds and µs per evaluation of the constrained vector field with the loops'
+    rate term ``γ`` in closed form (the loop closures as they are) and differentiated in
+    forward mode (each wrapped in a constraint that gives no closed form), cache off."""
+    import equinox as eqx
+    import jax
+
+    from jaxbody import maggi
+
+    class Differentiated(maggi.Constraint):
+        inner: maggi.Constraint
+
+        def velocity(self, base, t, q, x):
+            return self.inner.velocity(base, t, q, x)
+
+        def position(self, base, t, q):
+            return self.inner.position(base, t, q)
+
+        @property
+        def size(self):
+            return self.inner.size
+
+        @property
+        def names(self):
+            return self.inner.names
+
+    differentiated = eqx.tree_at(lambda s: s.constraints.constraints, scene,
+                                 tuple(Differentiated(c) for c in scene.constraints.constraints))
+    out = {}
+    cached = jax.config.jax_enable_compilation_cache
+    jax.config.update("jax_enable_compilation_cache", False)
+    try:
+        for name, sc in (("closed", scene), ("differentiated", differentiated)):
+            lowered = jax.jit(lambda q, v, sc=sc: sc.evaluate(0.0, q, v)[0]).lower(q, v)
+            t = time.perf_counter()
+            f = lowered.compile()
+            out[f"bias_{name}_compile_s"] = time.perf_counter() - t
+            f(q, v).block_until_ready()
+            out[f"bias_{name}_us"] = 1e6 * time_per_call(lambda f=f: f(q, v).block_until_ready())["median_s"]
+            out[f"bias_{name}_acceleration"] = [float(x) for x in f(q, v)]
+    finally:
+        jax.config.update("jax_enable_compilation_cache", cached)
+    a, b = out["bias_closed_acceleration"], out["bias_differentiated_acceleration"]
+    out["bias_max_difference"] = max(abs(x - y) for x, y in zip(a, b)) / max(abs(x) for x in b)
     return out
 
 
@@ -137,6 +187,11 @@ def main():
         ("max loop position residual along it", f"{r['max_position_residual']:.1e}"),
         ("vector field with the loops / without (µs per evaluation)",
          f"{r['field_constrained_us']:.0f} / {r['field_open_us']:.0f} = {r['field_ratio']:.1f}x"),
+        ("loops' rate term γ in closed form / differentiated: XLA compile of the vector field",
+         f"{r['bias_closed_compile_s']:.2f} / {r['bias_differentiated_compile_s']:.2f} s"),
+        ("loops' rate term γ in closed form / differentiated: one evaluation (µs)",
+         f"{r['bias_closed_us']:.0f} / {r['bias_differentiated_us']:.0f} (accelerations agree to "
+         f"{r['bias_max_difference']:.0e} of their largest)"),
         ("imported four-bar: vector field with its loop / without (µs, interleaved medians)",
          f"{r['four_bar_constrained_us']:.0f} / {r['four_bar_open_us']:.0f} = {r['four_bar_ratio']:.1f}x"),
     ]

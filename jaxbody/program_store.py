@@ -47,8 +47,8 @@ from jax.custom_derivatives import SymbolicZero
 from .compilation_cache import cache_root
 from .ffi_targets import needed, register, targets
 
-__all__ = ["ENV_SWITCH", "MAX_BYTES", "TRUSTED", "Undescribable", "call", "counts", "describe", "enabled", "fingerprint", "forget",
-           "store_dir"]
+__all__ = ["ENV_SWITCH", "MAX_BYTES", "TRUSTED", "Undescribable", "call", "call_then", "counts", "describe", "enabled",
+           "fingerprint", "forget", "store_dir"]
 
 #: The environment variable that turns the store off (``0``, ``off``, ``false``, ``no``).
 ENV_SWITCH = "JAXBODY_PROGRAM_STORE"
@@ -122,6 +122,8 @@ class _Describer:
         # shape (inputs); `names`: the attribute names of the code that reached a module
         if x is None or isinstance(x, (bool, int, float, complex, str, bytes, type(Ellipsis))):
             return (type(x).__name__, repr(x))
+        if isinstance(x, jax.ShapeDtypeStruct) and not static:
+            return ("input",) + _aval(x)
         if isinstance(x, (np.ndarray, np.generic, jax.Array)):
             if not static and not isinstance(x, np.generic):
                 return ("input",) + _aval(x)
@@ -215,9 +217,16 @@ class _Describer:
 
 
 def _aval(x) -> tuple:
-    """An input array's shape, dtype and weak type (a traced one's too)."""
-    aval = jax.typeof(x)
+    """An input array's shape, dtype and weak type (a traced one's too, or a
+    :class:`jax.ShapeDtypeStruct` standing for an array not yet computed)."""
+    aval = x if isinstance(x, jax.ShapeDtypeStruct) else jax.typeof(x)
     return (tuple(aval.shape), str(aval.dtype), bool(getattr(aval, "weak_type", False)))
+
+
+def _is_input(x) -> bool:
+    """An input of a program: an array, or the shape of one (:func:`call_then` prepares a
+    program for outputs that are not computed yet)."""
+    return eqx.is_array(x) or isinstance(x, jax.ShapeDtypeStruct)
 
 
 def _filled(cell) -> bool:
@@ -251,13 +260,19 @@ def _environment() -> tuple:
     jaxbody's environment variables (the cache's place aside) and the CPU count (the native
     kernel's default threads)."""
     versions = tuple((name, getattr(importlib.import_module(name), "__version__", "?")) for name in _VERSIONED)
-    config = tuple((name, str(getattr(jax.config, name))) for name in (
-        "jax_enable_x64", "jax_default_matmul_precision", "jax_numpy_dtype_promotion", "jax_numpy_rank_promotion",
-        "jax_default_prng_impl", "jax_platforms"))
+    config = _jax_settings()
     env = tuple(sorted((k, v) for k, v in os.environ.items()
                        if (k.startswith("JAXBODY_") and k not in ("JAXBODY_CACHE_DIR", ENV_SWITCH)) or k == "CXX"))
     return (_FORMAT, _source_hash(), versions, config, env, os.cpu_count(), sys.version_info[:2],
             jax.default_backend())
+
+
+def _jax_settings() -> tuple:
+    """JAX's settings that change a trace, as this thread sees them (a context manager's are
+    its thread's own)."""
+    return tuple((name, str(getattr(jax.config, name))) for name in (
+        "jax_enable_x64", "jax_default_matmul_precision", "jax_numpy_dtype_promotion", "jax_numpy_rank_promotion",
+        "jax_default_prng_impl", "jax_platforms"))
 
 
 def fingerprint(name: str, args, differentiated: tuple = ()) -> str:
@@ -333,7 +348,14 @@ class _Entry:
 
 _entries: dict = {}  # in this process: (function, static structure, input shapes) -> _Entry or None
 # how each call was served in this process (counts)
-_counts = {"loaded": 0, "stored": 0, "declined": 0, "traced": 0}
+_counts = {"loaded": 0, "stored": 0, "declined": 0, "traced": 0, "ahead": 0}
+_compiled: dict = {}  # id of an _Entry -> (the entry, its executable compiled ahead: call_then)
+_lock = threading.Lock()  # the two dicts above, written by call_then's background thread too
+
+
+def _count(kind: str) -> None:
+    with _lock:
+        _counts[kind] += 1
 
 
 def counts() -> dict:
@@ -341,14 +363,18 @@ def counts() -> dict:
     structure; later calls reuse it in memory): ``loaded`` from the store, ``stored`` (traced
     and written), ``declined`` (traced: arguments that cannot be fingerprinted, or a program
     that cannot be stored), and ``traced`` calls in all that did not run a stored program
-    (switched off, or traced arguments)."""
-    return dict(_counts)
+    (switched off, or traced arguments); ``ahead``: programs compiled in a background thread
+    while another ran (:func:`call_then`)."""
+    with _lock:
+        return dict(_counts)
 
 
 def forget() -> None:
     """Forget the programs held in this process's memory (the store on disk stays): the next
     call of each reads the store again."""
-    _entries.clear()
+    with _lock:
+        _entries.clear()
+        _compiled.clear()
 
 
 def _export(fn, args, leaves, treedef):
@@ -361,7 +387,7 @@ def _export(fn, args, leaves, treedef):
         skeleton.append(_skeleton(out, outputs))
         return outputs
 
-    static_part = eqx.partition(args, eqx.is_array)[1]
+    static_part = eqx.partition(args, _is_input)[1]
     specs = _specs(leaves)
     program = jax.jit(flat)
     # traced first: the FFI targets it registers are then known to the export's custom-call
@@ -419,7 +445,7 @@ def _export_derivative(fn, args, leaves, treedef, primal: _Entry, mask) -> _Entr
     """The program of :func:`_reverse_function` (``mask``: the input and output masks)."""
     in_mask, out_mask = mask
     outputs = primal.exported.out_avals
-    reverse = _reverse_function(fn, eqx.partition(args, eqx.is_array)[1], treedef, len(outputs), in_mask, out_mask)
+    reverse = _reverse_function(fn, eqx.partition(args, _is_input)[1], treedef, len(outputs), in_mask, out_mask)
     specs = _specs(leaves) + [jax.ShapeDtypeStruct(a.shape, a.dtype) for a, keep in zip(outputs, out_mask) if keep]
     exported = _exported(jax.jit(reverse), specs)
     return _Entry(exported, None, _needed(exported))
@@ -453,7 +479,7 @@ def _differentiated(fn, args, name, primal: _Entry, leaves, treedef, static_part
         mask = (in_mask, out_mask)
         entry = _entry(fn, args, name, leaves, treedef, static_part, mask, primal)
         if entry is None:  # not stored: the same derivative, traced
-            _counts["traced"] += 1
+            _count("traced")
             reverse = _reverse_function(fn, static_part, treedef, len(outputs), in_mask, out_mask)
             return (tuple(jax.jit(reverse)(*full(values), *kept)),)
         register(entry.notes)
@@ -548,7 +574,7 @@ def call(fn, args: tuple, name: str):
     ``name`` tells its programs apart from other functions'."""
     if not enabled():
         return _traced(fn, args)
-    dynamic, static_part = eqx.partition(args, eqx.is_array)
+    dynamic, static_part = eqx.partition(args, _is_input)
     leaves, treedef = jax.tree.flatten(dynamic)
     mask = tuple(isinstance(x, jax.core.Tracer) for x in leaves)
     # traced: only under reverse-mode differentiation of an eager call (jax.grad of a function
@@ -556,23 +582,91 @@ def call(fn, args: tuple, name: str):
     # user's jit or vmap, forward mode) holds the solve in its own program
     if any(mask) and not all(_reverse_of_concrete(x) for x, m in zip(leaves, mask) if m):
         return _traced(fn, args)
-    # arrays placed on one device as JAX's default: a program is stored without placements
-    if any(isinstance(x, jax.Array) and not isinstance(x, jax.core.Tracer) and len(x.sharding.device_set) != 1
-           for x in leaves):
+    if not _single_device(leaves):
         return _traced(fn, args)
     primal = _entry(fn, args, name, leaves, treedef, static_part, ())
     if primal is None:
         return _traced(fn, args)
     register(primal.notes)
     if not any(mask):
-        outputs = primal.exported.call(*leaves)
+        with _lock:
+            ahead = _compiled.get(id(primal), (None, None))[1]
+        outputs = None
+        if ahead is not None:
+            try:
+                outputs = ahead(*leaves)
+            except (TypeError, ValueError):  # inputs typed unlike the shapes it was compiled for
+                outputs = None
+        if outputs is None:
+            outputs = primal.exported.call(*leaves)
     else:
         outputs = _differentiated(fn, args, name, primal, leaves, treedef, static_part, mask)
     return _rebuild(primal.outputs, iter(outputs))
 
 
+def call_then(first, first_args: tuple, first_name: str, second, second_args, second_name: str):
+    """``(a, b)`` with ``a = first(*first_args)`` and ``b = second(*second_args(a))``, each run as
+    :func:`call` runs it. Where ``first`` runs as a stored program on concrete inputs, the
+    program of ``second`` is looked up (or traced and stored) and compiled in a background
+    thread as soon as the shapes of ``a`` are known, that is while ``first``'s program compiles
+    and runs: with an empty cache XLA then compiles the two side by side, one core each, and
+    with a warm one loads them side by side. ``second_args`` must build its arguments from
+    ``a`` alone (it is called with shapes first, then with the values)."""
+    if not enabled():
+        a = _traced(first, first_args)
+        return a, _traced(second, second_args(a))
+    ahead = None
+    dynamic, static_part = eqx.partition(first_args, _is_input)
+    leaves, treedef = jax.tree.flatten(dynamic)
+    if not any(isinstance(x, jax.core.Tracer) for x in leaves) and _single_device(leaves):
+        entry = _entry(first, first_args, first_name, leaves, treedef, static_part, ())
+        if entry is not None:
+            shapes = iter([jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=a.weak_type)
+                           for a in entry.exported.out_avals])
+            ahead = _ahead(second, second_args(_rebuild(entry.outputs, shapes)), second_name)
+    a = call(first, first_args, first_name)
+    if ahead is not None:
+        ahead.join()  # its failures are left to the call below, which makes the program itself
+    return a, call(second, second_args(a), second_name)
+
+
+def _ahead(fn, args, name) -> threading.Thread | None:
+    """Start a thread that finds or makes the program of ``fn(*args)`` (``args``: its input
+    arrays as shapes) and compiles it for :func:`call` (see :func:`call_then`)."""
+    settings = _jax_settings()
+
+    def work():
+        try:
+            # JAX's settings in a context manager are the caller's thread's own: a thread that
+            # sees others would trace another program, so it leaves the work to the call
+            if _jax_settings() != settings:
+                return
+            dynamic, static_part = eqx.partition(args, _is_input)
+            leaves, treedef = jax.tree.flatten(dynamic)
+            entry = _entry(fn, args, name, leaves, treedef, static_part, ())
+            if entry is None:
+                return
+            register(entry.notes)
+            compiled = jax.jit(entry.exported.call).lower(*_specs(leaves)).compile()
+            with _lock:
+                _compiled[id(entry)] = (entry, compiled)
+                _counts["ahead"] += 1
+        except Exception:  # noqa: BLE001 (the call that follows does the same work and reports)
+            pass
+
+    thread = threading.Thread(target=work, name="jaxbody-program-ahead", daemon=True)
+    thread.start()
+    return thread
+
+
+def _single_device(leaves) -> bool:
+    # arrays placed on one device as JAX's default: a program is stored without placements
+    return not any(isinstance(x, jax.Array) and not isinstance(x, jax.core.Tracer) and len(x.sharding.device_set) != 1
+                   for x in leaves)
+
+
 def _traced(fn, args):
-    _counts["traced"] += 1
+    _count("traced")
     return fn(*args)
 
 
@@ -591,11 +685,13 @@ def _entry(fn, args, name, leaves, treedef, static_part, mask, primal=None):
     local = _local_key(name, leaves, treedef, static_part)
     if local is not None:
         local = (local, mask)
-        if local in _entries:
-            return _entries[local]
+        with _lock:
+            if local in _entries:
+                return _entries[local]
     entry = _lookup(fn, args, name, leaves, treedef, mask, primal)
     if local is not None:
-        _entries[local] = entry
+        with _lock:
+            _entries[local] = entry
     return entry
 
 
@@ -605,15 +701,15 @@ def _lookup(fn, args, name, leaves, treedef, mask, primal):
     try:
         key = fingerprint(name, args, mask)
     except Undescribable:
-        _counts["declined"] += 1
+        _count("declined")
         return None
     path = store_dir() / f"{name}{'-reverse' if mask else ''}-{key}.pickle"
     entry = _read(path)
     if entry is False:
-        _counts["declined"] += 1
+        _count("declined")
         return None
     if entry is not None:
-        _counts["loaded"] += 1
+        _count("loaded")
         return entry
     try:
         entry = (_export(fn, args, leaves, treedef) if not mask
@@ -621,8 +717,8 @@ def _lookup(fn, args, name, leaves, treedef, mask, primal):
     except Exception as err:  # noqa: BLE001  (an output the store cannot rebuild, a host
         # callback: traced as before; a genuine error in the user's code is raised again there)
         _write(path, None, f"{type(err).__name__}: {err}")
-        _counts["declined"] += 1
+        _count("declined")
         return None
     _write(path, entry)
-    _counts["stored"] += 1
+    _count("stored")
     return entry

@@ -172,9 +172,13 @@ def simulate_scene(
     prefetch_solve(scene, y0, solver_obj, controller, saveat, adjoint, meter, event, dense, slots)
     # the layout and the native switch are computed out here: static arguments of the compiled solve
     # a program traced in an earlier process is run as stored (no trace: program_store)
-    sol, w_final = program_store.call(_solve, (scene, y0, t0, t1, valid, solver_obj, controller, dt0, saveat,
-                                               max_steps, adjoint, meter, event, solution_layout(scene), dense,
-                                               slots, tuple(work_names), native_solve_enabled()), "simulate")
+    integrated, saved = program_store.call_then(
+        _integrate, (scene, y0, t0, t1, valid, solver_obj, controller, dt0, saveat, max_steps, adjoint, meter, event,
+                     dense, slots, native_solve_enabled()), "simulate",
+        _saved_quantities, lambda out: (scene, y0, t0, out[0], out[1], tuple(work_names)), "saved")
+    sol = _solution(integrated, saved, solution_layout(scene))
+    yf = integrated[3]
+    w_final = yf[2][-1] if len(yf) == 3 else None
     if correction is not None:
         sol = dataclasses.replace(sol, stats={**sol.stats, "v0_correction": correction})
     sol = dataclasses.replace(sol, **ran_by(scene, solver))
@@ -301,11 +305,13 @@ def integrate(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_ste
 
 
 @eqx.filter_jit
-def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps, adjoint, meter, event, layout, dense,
-           slots, work_names, native_enabled):
-    """The solve and the solution's fields. ``native_enabled``: whether a solve may run as one
-    native call (:func:`jaxbody.simulation.native_solve.native_solve_enabled`, read by the
-    caller so that it keys the compiled program)."""
+def _integrate(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps, adjoint, meter, event, dense, slots,
+               native_enabled):
+    """The solve: ``(ts, ys, tf, yf, stats, result, repartition_times, interpolation)`` (the saved
+    times and states, the last ones, the statistics and outcome, and the dense interpolation
+    where asked). ``native_enabled``: whether a solve may run as one native call
+    (:func:`jaxbody.simulation.native_solve.native_solve_enabled`, read by the caller so that it
+    keys the compiled program)."""
     one_call = native_enabled and native_solve_applies(scene, y0, solver, controller, saveat, adjoint, meter, event,
                                                        dense, slots)
     sol = None
@@ -338,6 +344,22 @@ def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps,
             reverse = (native_reverse(adjoint, max_steps, slots, y0) if method == "rk4"
                        else native_adaptive_reverse(adjoint, max_steps, slots, y0, method))
         ts, ys, tf, yf, stats, result = native_or_stepped(rest, y0, native, stepped, reverse)
+    if sol is None:
+        stats["num_repartitions"], repartition_times = jnp.zeros((), jnp.int32), None
+    else:
+        stats["num_repartitions"], repartition_times, result = _partition_outcome(solver, sol, result)
+    interpolation = sol.interpolation if dense and sol is not None else None
+    return ts, ys, tf, yf, stats, result, repartition_times, interpolation
+
+
+@eqx.filter_jit
+def _saved_quantities(scene, y0, t0, ts, ys, work_names):
+    """What the solution reports at the saved states ``(ts, ys)`` of a solve from ``y0``:
+    ``(energy, work, energy_drift, energy0, constraint_drift, reactions)`` (``None`` where the
+    scene has no energy or no constraints). A program of its own, apart from the solve's: the
+    reactions evaluate the whole constrained vector field again (about a third to a half of a
+    constrained solve's compiled code), so a first call compiles the two side by side
+    (:func:`jaxbody.program_store.call_then`)."""
     q, v = ys[0], ys[1]
     finite = jnp.all(jnp.isfinite(q), axis=-1) & jnp.all(jnp.isfinite(v), axis=-1)
     work = {}
@@ -370,16 +392,18 @@ def _solve(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps,
         # Λ does not depend on the coordinate partition: each state with its best-conditioned one
         lam = jax.vmap(lambda tt, a, b: with_best_partition(scene, tt, a, b).evaluate(tt, a, b)[2])(t_safe, qs, vs)
         reactions = jnp.where(finite[:, None], lam, jnp.nan)
-    if sol is None:
-        stats["num_repartitions"], repartition_times = jnp.zeros((), jnp.int32), None
-    else:
-        stats["num_repartitions"], repartition_times, result = _partition_outcome(solver, sol, result)
-    out = Solution(
-        t=ts, q=q, v=v, energy=energy, work=work, energy_drift=drift, constraint_drift=cdrift,
-        reactions=reactions, stats=stats, result=result, t_final=tf[-1], q_final=yf[0][-1], v_final=yf[1][-1], layout=layout,
-        interpolation=sol.interpolation if dense and sol is not None else None, repartition_times=repartition_times, energy0=energy0,
+    return energy, work, drift, energy0, cdrift, reactions
+
+
+def _solution(integrated, saved, layout) -> Solution:
+    """The :class:`Solution` of :func:`_integrate`'s and :func:`_saved_quantities`' outputs."""
+    ts, ys, tf, yf, stats, result, repartition_times, interpolation = integrated
+    energy, work, drift, energy0, cdrift, reactions = saved
+    return Solution(
+        t=ts, q=ys[0], v=ys[1], energy=energy, work=work, energy_drift=drift, constraint_drift=cdrift,
+        reactions=reactions, stats=stats, result=result, t_final=tf[-1], q_final=yf[0][-1], v_final=yf[1][-1],
+        layout=layout, interpolation=interpolation, repartition_times=repartition_times, energy0=energy0,
     )
-    return out, (yf[2][-1] if len(yf) == 3 else None)
 
 
 def _partition_outcome(solver, sol, result):
