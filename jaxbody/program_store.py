@@ -22,6 +22,10 @@ reused only when the fingerprint proves it is the one tracing would give. So do 
 are traced (inside the user's ``jit``, ``vmap`` or ``grad``, where the user's program holds the
 solve) and programs that cannot be exported (a host callback: a progress meter).
 
+:func:`call_then` runs two functions, the second on the outputs of the first, and prepares the
+second's program (found, or traced and stored, then compiled) in a background thread while the
+first's compiles and runs.
+
 The store is bounded (:data:`MAX_BYTES`; the least recently used programs go first).
 ``JAXBODY_PROGRAM_STORE=0`` (or ``off``, ``false``, ``no``) turns it off.
 """

@@ -123,8 +123,8 @@ b.add_body("arm", mass=1.0, com=(0, 0, -0.2), inertia=(0.01, 0.01, 0.002), joint
 model = b.build()
 sol = jb.simulate(model, jnp.array([0.3]), jnp.array([0.0]), 1.0)
 print(json.dumps({"q": [float(x) for x in sol.q[:, 0]],
-                  # the solve's program: traced (jit__solve) or stored by jaxbody.program_store
-                  "solve_hits": sum("cache hit for 'jit__solve'" in m or "cache hit for 'jit_call_exported'" in m
+                  # the solve's program: traced (jit__integrate; the suite turns jaxbody.program_store off)
+                  "solve_hits": sum("cache hit for 'jit__integrate'" in m
                                     for m in messages),
                   "callbacks": [m for m in messages if "host callbacks" in m]}))
 """

@@ -113,7 +113,7 @@ def test_four_bar_batch_equals_loop(four_bar_scene):
             np.testing.assert_allclose(batch.constraint_drift[k][i], one.constraint_drift[k], rtol=0, atol=1e-12)
 
 
-@pytest.mark.slow  # 40-65 s; the default suite differentiates constrained solves in test_reverse_mode_gradient_through_repartitioning_solve and the disk tests
+@pytest.mark.slow  # 40-65 s; the default suite differentiates constrained solves in test_simulation_partitioning.py and the disk tests
 def test_loop_reaction_gradient_wrt_link_mass_through_the_solve(four_bar_scene):
     """∂Λ(t1)/∂m_coupler through a constrained simulation vs central finite differences."""
     q0, v0 = four_bar_state(0.6, 2.0)
