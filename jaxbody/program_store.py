@@ -35,6 +35,7 @@ import enum
 import functools
 import hashlib
 import importlib
+import json
 import os
 import pickle
 import sys
@@ -379,6 +380,8 @@ def forget() -> None:
     with _lock:
         _entries.clear()
         _compiled.clear()
+        _mask_files.clear()
+        _remembered.clear()
 
 
 def _export(fn, args, leaves, treedef):
@@ -467,13 +470,17 @@ def _differentiated(fn, args, name, primal: _Entry, leaves, treedef, static_part
         it = iter(diff)
         return [next(it) if m else c for c, m in zip(constants, in_mask)]
 
+    # the reverse programs an earlier process used after this forward pass, loaded and compiled
+    # in background threads while the forward pass and the rest of the loss run
+    ahead = _reverse_ahead(fn, args, name, primal, leaves, treedef, static_part, in_mask)
+
     @jax.custom_vjp
     def run(diff):
         return tuple(primal.exported.call(*full(diff)))
 
     def run_fwd(diff):
         values = tuple(d.value for d in diff)
-        return tuple(primal.exported.call(*full(values))), values
+        return tuple(_run_entry(primal, full(values))), values
 
     def run_bwd(values, cotangents):
         out_mask = tuple(f and not isinstance(c, SymbolicZero) for c, f in zip(cotangents, inexact))
@@ -481,17 +488,128 @@ def _differentiated(fn, args, name, primal: _Entry, leaves, treedef, static_part
             return (tuple(jnp.zeros_like(v) for v in values),)
         kept = [c for c, keep in zip(cotangents, out_mask) if keep]
         mask = (in_mask, out_mask)
+        if out_mask in ahead:
+            ahead[out_mask].join()  # the same entry, being read by its thread: waited for, not read twice
         entry = _entry(fn, args, name, leaves, treedef, static_part, mask, primal)
         if entry is None:  # not stored: the same derivative, traced
             _count("traced")
             reverse = _reverse_function(fn, static_part, treedef, len(outputs), in_mask, out_mask)
             return (tuple(jax.jit(reverse)(*full(values), *kept)),)
+        _remember_mask(name, args, primal, in_mask, out_mask)
         register(entry.notes)
-        return (tuple(entry.exported.call(*full(values), *kept)),)
+        return (tuple(_run_entry(entry, [*full(values), *kept])),)
 
     # symbolic zeros: the outputs no cotangent reaches are known to the reverse pass
     run.defvjp(run_fwd, run_bwd, symbolic_zeros=True)
     return run(tuple(x for x, m in zip(leaves, in_mask) if m))
+
+
+_mask_files: dict = {}  # (id of a primal _Entry, input mask) -> its masks file (_masks_path)
+_remembered: set = set()  # (id of a primal _Entry, input mask, output mask) written in this process
+
+
+def _masks_path(name, args, primal, in_mask) -> Path | None:
+    """The file listing the output masks of the reverse programs used after the forward pass of
+    ``name`` on ``args`` differentiated with respect to ``in_mask`` (``None``: not describable);
+    fingerprinted once per primal program and mask in a process."""
+    key = (id(primal), in_mask)
+    with _lock:
+        if key in _mask_files:
+            return _mask_files[key]
+    try:
+        path = store_dir() / f"{name}-masks-{fingerprint(name, args, ('reverse masks', in_mask))}.json"
+    except Undescribable:
+        path = None
+    with _lock:
+        _mask_files[key] = path
+    return path
+
+
+def _remember_mask(name, args, primal, in_mask, out_mask) -> None:
+    key = (id(primal), in_mask, out_mask)
+    with _lock:
+        if key in _remembered:
+            return
+        _remembered.add(key)
+    path = _masks_path(name, args, primal, in_mask)
+    if path is None:
+        return
+    masks = _known_masks(path)
+    if list(out_mask) in masks:
+        return
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp")
+        tmp.write_text(json.dumps(masks + [list(out_mask)]))
+        os.replace(tmp, path)  # atomic: a reader sees the old list or the new one
+    except OSError:
+        pass
+
+
+def _known_masks(path: Path) -> list:
+    try:
+        masks = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return []
+    return [m for m in masks if isinstance(m, list)] if isinstance(masks, list) else []
+
+
+def _reverse_ahead(fn, args, name, primal, leaves, treedef, static_part, in_mask) -> dict:
+    """Threads, by output mask, that read and compile the stored reverse programs an earlier
+    process used after this forward pass (:func:`_remember_mask`): in a warm process loading a
+    reverse program's executable is most of a gradient (about 0.9 s for a 1 MB program), and
+    the forward pass and the rest of the loss then run meanwhile. A program not stored is left
+    to the reverse pass, which makes it."""
+    path = _masks_path(name, args, primal, in_mask)
+    if path is None:
+        return {}
+    outputs = primal.exported.out_avals
+    threads = {}
+    settings = _jax_settings()
+    for out_mask in map(tuple, _known_masks(path)):
+        if len(out_mask) != len(outputs):
+            continue
+        specs = _specs(leaves) + [jax.ShapeDtypeStruct(a.shape, a.dtype) for a, keep in zip(outputs, out_mask) if keep]
+
+        def work(out_mask=out_mask, specs=specs):
+            try:
+                if _jax_settings() != settings:
+                    return
+                entry = _entry(fn, args, name, leaves, treedef, static_part, (in_mask, out_mask), primal, make=False)
+                if entry is not None:
+                    _compile_ahead(entry, specs)
+            except Exception:  # noqa: BLE001 (the reverse pass does the same work and reports)
+                pass
+
+        threads[out_mask] = threading.Thread(target=work, name="jaxbody-reverse-ahead", daemon=True)
+        threads[out_mask].start()
+    return threads
+
+
+def _compile_ahead(entry: "_Entry", specs) -> None:
+    """Compile ``entry``'s program for inputs ``specs`` and keep it for :func:`_run_entry`
+    (once per entry in a process)."""
+    with _lock:
+        if id(entry) in _compiled:
+            return
+    register(entry.notes)
+    compiled = jax.jit(entry.exported.call).lower(*specs).compile()
+    with _lock:
+        _compiled[id(entry)] = (entry, compiled)
+        _counts["ahead"] += 1
+
+
+def _run_entry(entry: "_Entry", inputs: list):
+    """``entry``'s program on concrete ``inputs``: its executable compiled ahead where there is
+    one (and the inputs are typed as it was compiled for), else through JAX's own call."""
+    with _lock:
+        compiled = _compiled.get(id(entry), (None, None))[1]
+    if compiled is not None:
+        try:
+            return compiled(*inputs)
+        except (TypeError, ValueError):
+            pass
+    return entry.exported.call(*inputs)
 
 
 def _read(path: Path):
@@ -593,16 +711,7 @@ def call(fn, args: tuple, name: str):
         return _traced(fn, args)
     register(primal.notes)
     if not any(mask):
-        with _lock:
-            ahead = _compiled.get(id(primal), (None, None))[1]
-        outputs = None
-        if ahead is not None:
-            try:
-                outputs = ahead(*leaves)
-            except (TypeError, ValueError):  # inputs typed unlike the shapes it was compiled for
-                outputs = None
-        if outputs is None:
-            outputs = primal.exported.call(*leaves)
+        outputs = _run_entry(primal, list(leaves))
     else:
         outputs = _differentiated(fn, args, name, primal, leaves, treedef, static_part, mask)
     return _rebuild(primal.outputs, iter(outputs))
@@ -622,7 +731,8 @@ def call_then(first, first_args: tuple, first_name: str, second, second_args, se
     ahead = None
     dynamic, static_part = eqx.partition(first_args, _is_input)
     leaves, treedef = jax.tree.flatten(dynamic)
-    if not any(isinstance(x, jax.core.Tracer) for x in leaves) and _single_device(leaves):
+    # on concrete inputs, or under reverse-mode differentiation of concrete ones (as call runs)
+    if all(_reverse_of_concrete(x) for x in leaves if isinstance(x, jax.core.Tracer)) and _single_device(leaves):
         entry = _entry(first, first_args, first_name, leaves, treedef, static_part, ())
         if entry is not None:
             shapes = iter([jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=a.weak_type)
@@ -648,13 +758,8 @@ def _ahead(fn, args, name) -> threading.Thread | None:
             dynamic, static_part = eqx.partition(args, _is_input)
             leaves, treedef = jax.tree.flatten(dynamic)
             entry = _entry(fn, args, name, leaves, treedef, static_part, ())
-            if entry is None:
-                return
-            register(entry.notes)
-            compiled = jax.jit(entry.exported.call).lower(*_specs(leaves)).compile()
-            with _lock:
-                _compiled[id(entry)] = (entry, compiled)
-                _counts["ahead"] += 1
+            if entry is not None:
+                _compile_ahead(entry, _specs(leaves))
         except Exception:  # noqa: BLE001 (the call that follows does the same work and reports)
             pass
 
@@ -682,7 +787,7 @@ def _reverse_of_concrete(x) -> bool:
             and np.issubdtype(jax.typeof(x).dtype, np.inexact))
 
 
-def _entry(fn, args, name, leaves, treedef, static_part, mask, primal=None):
+def _entry(fn, args, name, leaves, treedef, static_part, mask, primal=None, make=True):
     """The program of ``fn(*args)`` (``mask`` empty) or its derivative with respect to the
     marked inputs (``primal``: the program's own entry), from this process's memory, the store,
     or traced and stored; ``None`` where it is traced as before."""
@@ -692,16 +797,18 @@ def _entry(fn, args, name, leaves, treedef, static_part, mask, primal=None):
         with _lock:
             if local in _entries:
                 return _entries[local]
-    entry = _lookup(fn, args, name, leaves, treedef, mask, primal)
-    if local is not None:
+    entry = _lookup(fn, args, name, leaves, treedef, mask, primal, make)
+    # a program only looked for (make=False) and not found is still to be made by the next call
+    if local is not None and (entry is not None or make):
         with _lock:
             _entries[local] = entry
     return entry
 
 
-def _lookup(fn, args, name, leaves, treedef, mask, primal):
+def _lookup(fn, args, name, leaves, treedef, mask, primal, make=True):
     """The entry of ``fn(*args)`` or its derivative (:func:`_entry`): read from the store, or
-    exported and written there; ``None`` where the program is traced instead."""
+    (``make``) exported and written there; ``None`` where the program is traced instead (or,
+    without ``make``, not stored)."""
     try:
         key = fingerprint(name, args, mask)
     except Undescribable:
@@ -715,6 +822,8 @@ def _lookup(fn, args, name, leaves, treedef, mask, primal):
     if entry is not None:
         _count("loaded")
         return entry
+    if not make:
+        return None
     try:
         entry = (_export(fn, args, leaves, treedef) if not mask
                  else _export_derivative(fn, args, leaves, treedef, primal, mask))

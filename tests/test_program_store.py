@@ -76,11 +76,15 @@ def test_stored_program_gives_the_traced_results_and_gradients(store, monkeypatc
     assert after["stored"] - before["stored"] == 3  # and the solve's derivative
     assert len(_primal_files(store)) == 1 and len(list(store.glob("saved-*.pickle"))) == 1
     assert len(list(store.glob("simulate-reverse-*.pickle"))) == 1
-    # read back from the store (not from memory): the same numbers again
+    # the reverse program's output mask is remembered for the next forward pass
+    assert len(list(store.glob("simulate-masks-*.json"))) == 1
+    # read back from the store (not from memory): the same numbers again; the saved quantities'
+    # program and the reverse program read and compiled in background threads
     program_store.forget()
     again = jb.simulate(scene, q0, jnp.zeros(2), 0.5, n_save=11)
     grad_again = jax.grad(_loss(model, pd, q0))(gains)
     assert program_store.counts()["loaded"] - after["loaded"] == 3
+    assert program_store.counts()["ahead"] - after["ahead"] == 2
     np.testing.assert_array_equal(again.q, sol.q)
     np.testing.assert_array_equal(grad_again, grad)
     assert again.kernel == sol.kernel and again.layout == sol.layout and again.success
