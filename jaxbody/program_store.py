@@ -355,6 +355,7 @@ _entries: dict = {}  # in this process: (function, static structure, input shape
 # how each call was served in this process (counts)
 _counts = {"loaded": 0, "stored": 0, "declined": 0, "traced": 0, "ahead": 0}
 _compiled: dict = {}  # id of an _Entry -> (the entry, its executable compiled ahead: call_then)
+_calls: dict = {}  # id of an _Entry -> (the entry, its jitted call: _jitted)
 _lock = threading.Lock()  # the two dicts above, written by call_then's background thread too
 
 
@@ -380,6 +381,7 @@ def forget() -> None:
     with _lock:
         _entries.clear()
         _compiled.clear()
+        _calls.clear()
         _mask_files.clear()
         _remembered.clear()
 
@@ -448,12 +450,18 @@ def _reverse_function(fn, static_part, treedef, n_out, in_mask, out_mask):
     return reverse
 
 
+def _reverse_specs(leaves, outputs, out_mask) -> list:
+    """The inputs of a reverse program: the primal's input arrays and the cotangents of the
+    outputs ``out_mask`` marks (of avals ``outputs``)."""
+    return _specs(leaves) + [jax.ShapeDtypeStruct(a.shape, a.dtype) for a, keep in zip(outputs, out_mask) if keep]
+
+
 def _export_derivative(fn, args, leaves, treedef, primal: _Entry, mask) -> _Entry:
     """The program of :func:`_reverse_function` (``mask``: the input and output masks)."""
     in_mask, out_mask = mask
     outputs = primal.exported.out_avals
     reverse = _reverse_function(fn, eqx.partition(args, _is_input)[1], treedef, len(outputs), in_mask, out_mask)
-    specs = _specs(leaves) + [jax.ShapeDtypeStruct(a.shape, a.dtype) for a, keep in zip(outputs, out_mask) if keep]
+    specs = _reverse_specs(leaves, outputs, out_mask)
     exported = _exported(jax.jit(reverse), specs)
     return _Entry(exported, None, _needed(exported))
 
@@ -480,7 +488,7 @@ def _differentiated(fn, args, name, primal: _Entry, leaves, treedef, static_part
 
     def run_fwd(diff):
         values = tuple(d.value for d in diff)
-        return tuple(_run_entry(primal, full(values))), values
+        return tuple(_run_entry(primal, full(values), _specs(leaves))), values
 
     def run_bwd(values, cotangents):
         out_mask = tuple(f and not isinstance(c, SymbolicZero) for c, f in zip(cotangents, inexact))
@@ -497,7 +505,7 @@ def _differentiated(fn, args, name, primal: _Entry, leaves, treedef, static_part
             return (tuple(jax.jit(reverse)(*full(values), *kept)),)
         _remember_mask(name, args, primal, in_mask, out_mask)
         register(entry.notes)
-        return (tuple(_run_entry(entry, [*full(values), *kept])),)
+        return (tuple(_run_entry(entry, [*full(values), *kept], _reverse_specs(leaves, outputs, out_mask))),)
 
     # symbolic zeros: the outputs no cotangent reaches are known to the reverse pass
     run.defvjp(run_fwd, run_bwd, symbolic_zeros=True)
@@ -569,7 +577,7 @@ def _reverse_ahead(fn, args, name, primal, leaves, treedef, static_part, in_mask
     for out_mask in map(tuple, _known_masks(path)):
         if len(out_mask) != len(outputs):
             continue
-        specs = _specs(leaves) + [jax.ShapeDtypeStruct(a.shape, a.dtype) for a, keep in zip(outputs, out_mask) if keep]
+        specs = _reverse_specs(leaves, outputs, out_mask)
 
         def work(out_mask=out_mask, specs=specs):
             try:
@@ -587,29 +595,46 @@ def _reverse_ahead(fn, args, name, primal, leaves, treedef, static_part, in_mask
 
 
 def _compile_ahead(entry: "_Entry", specs) -> None:
-    """Compile ``entry``'s program for inputs ``specs`` and keep it for :func:`_run_entry`
-    (once per entry in a process)."""
+    """Compile ``entry``'s program for inputs ``specs`` in this (background) thread."""
+    register(entry.notes)
+    if _executable(entry, specs)[1]:
+        _count("ahead")
+
+
+def _jitted(entry: "_Entry"):
+    """The jitted call of ``entry``'s program (one per entry in a process)."""
+    with _lock:
+        if id(entry) not in _calls:
+            _calls[id(entry)] = (entry, jax.jit(entry.exported.call))
+        return _calls[id(entry)][1]
+
+
+def _executable(entry: "_Entry", specs) -> tuple:
+    """``(executable, compiled now)``: ``entry``'s program compiled for the inputs ``specs``
+    (once per entry in a process). Compiled from the shapes alone, in the thread that prepares
+    it ahead and in the call that needs it alike: the same XLA program whichever did, so that
+    JAX's persistent cache finds in a later process what an earlier one compiled (a call on
+    the arrays themselves would key the program by where each array is placed, too)."""
     with _lock:
         if id(entry) in _compiled:
-            return
-    register(entry.notes)
-    compiled = jax.jit(entry.exported.call).lower(*specs).compile()
+            return _compiled[id(entry)][1], False
+    compiled = _jitted(entry).lower(*specs).compile()
     with _lock:
+        if id(entry) in _compiled:  # another thread compiled it meanwhile
+            return _compiled[id(entry)][1], False
         _compiled[id(entry)] = (entry, compiled)
-        _counts["ahead"] += 1
+    return compiled, True
 
 
-def _run_entry(entry: "_Entry", inputs: list):
-    """``entry``'s program on concrete ``inputs``: its executable compiled ahead where there is
-    one (and the inputs are typed as it was compiled for), else through JAX's own call."""
-    with _lock:
-        compiled = _compiled.get(id(entry), (None, None))[1]
-    if compiled is not None:
-        try:
-            return compiled(*inputs)
-        except (TypeError, ValueError):
-            pass
-    return entry.exported.call(*inputs)
+def _run_entry(entry: "_Entry", inputs: list, specs):
+    """``entry``'s program on concrete ``inputs`` of shapes ``specs``, by its executable
+    (:func:`_executable`); inputs typed unlike the shapes it was compiled for go through its
+    jitted call instead."""
+    executable = _executable(entry, specs)[0]
+    try:
+        return executable(*inputs)
+    except (TypeError, ValueError):
+        return _jitted(entry)(*inputs)
 
 
 def _read(path: Path):
@@ -711,7 +736,7 @@ def call(fn, args: tuple, name: str):
         return _traced(fn, args)
     register(primal.notes)
     if not any(mask):
-        outputs = _run_entry(primal, list(leaves))
+        outputs = _run_entry(primal, list(leaves), _specs(leaves))
     else:
         outputs = _differentiated(fn, args, name, primal, leaves, treedef, static_part, mask)
     return _rebuild(primal.outputs, iter(outputs))
