@@ -5,22 +5,16 @@ XLA's compilation, not the Python work before it: tracing a solve through diffra
 lowering it to XLA's language took 0.7 s of a warm iiwa arm's 1.05 s first ``simulate``, and
 1.4 s of a four-bar's 2.0 s. :func:`call` runs a function of a solve's arguments as a program
 exported with :mod:`jax.export` and stored in ``<cache>/programs``, keyed by a fingerprint of
-everything the traced program is a function of except the values of its input arrays:
+everything the traced program is a function of except the values of its input arrays
+(:mod:`jaxbody.program_fingerprint`: the input arrays' shapes and dtypes, every other argument
+by value, the functions among them by their code and what it reads, jaxbody's source, the
+packages' versions, JAX's settings and jaxbody's environment variables).
 
-* the shapes and dtypes of the input arrays, and every other argument by value (numbers,
-  strings, the static fields of modules, arrays held as constants);
-* the functions among the arguments (a control law, a constraint, an event) by their code, the
-  values they close over and the globals their code names, recursively (a module of one of the
-  trusted packages, :data:`TRUSTED`, by its name; any other module by the attributes the code
-  names);
-* the versions of jaxbody's source (a hash of its files) and of the packages it traces through,
-  JAX's configuration that changes a trace, and jaxbody's environment variables.
-
-An argument that cannot be fingerprinted this way (an object of a class that is neither a
-dataclass nor a module of the kinds above) makes :func:`call` trace as before: a program is
-reused only when the fingerprint proves it is the one tracing would give. So do arguments that
-are traced (inside the user's ``jit``, ``vmap`` or ``grad``, where the user's program holds the
-solve) and programs that cannot be exported (a host callback: a progress meter).
+An argument that cannot be fingerprinted (an object of a class that is neither a dataclass nor
+a module) makes :func:`call` trace as before: a program is reused only when the fingerprint
+proves it is the one tracing would give. So do arguments that are traced (inside the user's
+``jit``, ``vmap`` or ``grad``, where the user's program holds the solve) and programs that
+cannot be exported (a host callback: a progress meter).
 
 :func:`call_then` runs two functions, the second on the outputs of the first, and prepares the
 second's program (found, or traced and stored, then compiled) in a background thread while the
@@ -30,17 +24,13 @@ The store is bounded (:data:`MAX_BYTES`; the least recently used programs go fir
 ``JAXBODY_PROGRAM_STORE=0`` (or ``off``, ``false``, ``no``) turns it off.
 """
 
+import atexit
 import dataclasses
-import enum
-import functools
-import hashlib
 import importlib
 import json
 import os
 import pickle
-import sys
 import threading
-import types
 from pathlib import Path
 
 import equinox as eqx
@@ -51,23 +41,14 @@ from jax.custom_derivatives import SymbolicZero
 
 from .compilation_cache import cache_root
 from .ffi_targets import needed, register, targets
+from .program_fingerprint import TRUSTED, Undescribable, describe, input_aval, is_input, jax_settings
+from .program_fingerprint import fingerprint as _fingerprint
 
 __all__ = ["ENV_SWITCH", "MAX_BYTES", "TRUSTED", "Undescribable", "call", "call_then", "counts", "describe", "enabled",
            "fingerprint", "forget", "store_dir"]
 
 #: The environment variable that turns the store off (``0``, ``off``, ``false``, ``no``).
 ENV_SWITCH = "JAXBODY_PROGRAM_STORE"
-
-#: Packages whose functions and classes are fingerprinted by name: their code is fixed by the
-#: versions in the fingerprint (jaxbody's by the hash of its source files).
-TRUSTED = frozenset({
-    "jaxbody", "jax", "jaxlib", "numpy", "diffrax", "equinox", "optimistix", "lineax", "jaxtyping", "builtins",
-    "math", "cmath", "operator", "functools", "itertools", "typing", "collections", "dataclasses", "enum", "abc",
-    "types",
-})
-
-# the packages a solve is traced through: their versions key every program
-_VERSIONED = ("jax", "jaxlib", "numpy", "diffrax", "equinox", "optimistix", "lineax")
 
 #: Size bound of the store (bytes): past it, the least recently used programs are removed.
 MAX_BYTES = 512 * 1024**2
@@ -76,216 +57,22 @@ MAX_BYTES = 512 * 1024**2
 _FORMAT = 3
 
 
-class Undescribable(TypeError):
-    """An argument the fingerprint cannot describe (the program is traced instead of stored)."""
-
-
 def enabled() -> bool:
     """Whether :func:`call` may store and reuse programs (``$JAXBODY_PROGRAM_STORE``)."""
     return os.environ.get(ENV_SWITCH, "1").strip().lower() not in ("0", "off", "false", "no")
 
 
+def fingerprint(name: str, args, differentiated: tuple = ()) -> str:
+    """The key a program ``name`` of ``args`` (or, where ``differentiated`` marks input arrays,
+    its derivative) is stored under: :func:`jaxbody.program_fingerprint.fingerprint` with the
+    store's format, its switch left out. Raises :class:`Undescribable` where the arguments
+    cannot be fingerprinted."""
+    return _fingerprint(name, args, differentiated, context=(_FORMAT,), unkeyed=(ENV_SWITCH,))
+
+
 def store_dir() -> Path:
     """Where programs are stored: ``<cache>/programs`` (:func:`jaxbody.compilation_cache.cache_root`)."""
     return cache_root() / "programs"
-
-
-# ---------------------------------------------------------------------------------------------
-# the fingerprint
-
-
-def _trusted(module: str | None) -> bool:
-    return module is not None and module.split(".", 1)[0] in TRUSTED
-
-
-def _code_names(code: types.CodeType) -> set:
-    """The global and attribute names ``code`` and the code nested in it refer to."""
-    names = set(code.co_names)
-    for const in code.co_consts:
-        if isinstance(const, types.CodeType):
-            names |= _code_names(const)
-    return names
-
-
-def _code(code: types.CodeType) -> tuple:
-    """A code object by what it executes (not where it was written: moving a function in its
-    file changes no program)."""
-    consts = tuple(_code(c) if isinstance(c, types.CodeType) else ("const", type(c).__name__, repr(c))
-                   for c in code.co_consts)
-    return ("code", code.co_code, consts, code.co_names, code.co_varnames, code.co_freevars, code.co_cellvars,
-            code.co_argcount, code.co_kwonlyargcount, code.co_flags)
-
-
-class _Describer:
-    """One fingerprint: :meth:`__call__` describes a value as nested tuples of plain data."""
-
-    def __init__(self):
-        self._seen: dict = {}  # (id, how described) -> its index
-
-    def __call__(self, x, static: bool = True, names: frozenset = frozenset()):
-        # `static`: arrays are described by value (constants of the program) rather than by
-        # shape (inputs); `names`: the attribute names of the code that reached a module
-        if x is None or isinstance(x, (bool, int, float, complex, str, bytes, type(Ellipsis))):
-            return (type(x).__name__, repr(x))
-        if isinstance(x, jax.ShapeDtypeStruct) and not static:
-            return ("input",) + _aval(x)
-        if isinstance(x, (np.ndarray, np.generic, jax.Array)):
-            if not static and not isinstance(x, np.generic):
-                return ("input",) + _aval(x)
-            if isinstance(x, jax.core.Tracer):
-                raise Undescribable("a traced value held as a constant")
-            value = np.asarray(x)
-            return ("value", value.shape, str(value.dtype), hashlib.sha256(value.tobytes()).hexdigest())
-        if isinstance(x, np.dtype):
-            return ("dtype", str(x))
-        # a value met again is a reference to its first description, if it was described the
-        # same way: as a constant or an input, and a module with the same attribute names
-        key = (id(x), static, names if isinstance(x, types.ModuleType) else None)
-        if key in self._seen:
-            return ("ref", self._seen[key])
-        self._seen[key] = len(self._seen)
-        # keep the object alive while its id stands for it
-        self._seen[("keep",) + key] = x
-        if isinstance(x, (tuple, list)) and not hasattr(x, "_fields"):
-            return (type(x).__name__, tuple(self(v, static, names) for v in x))
-        if isinstance(x, tuple):  # a named tuple
-            return ("namedtuple", self._class(type(x)), tuple(self(v, static, names) for v in x))
-        if isinstance(x, dict):
-            items = sorted(((self(k), self(v, static, names)) for k, v in x.items()), key=repr)
-            return ("dict", tuple(items))
-        if isinstance(x, (set, frozenset)):
-            return (type(x).__name__, tuple(sorted((self(v) for v in x), key=repr)))
-        if isinstance(x, type):
-            return self._class(x)
-        if isinstance(x, enum.Enum):
-            return ("enum", self._class(type(x)), x.name)
-        if isinstance(x, types.ModuleType):
-            return self._module(x, names)
-        if isinstance(x, types.FunctionType):
-            return self._function(x)
-        if isinstance(x, types.MethodType):
-            return ("method", self(x.__self__), self(x.__func__))
-        if isinstance(x, functools.partial):
-            return ("partial", self(x.func), self(x.args), self(x.keywords))
-        if isinstance(x, types.BuiltinFunctionType):
-            if not _trusted(getattr(x, "__module__", None) or "builtins"):
-                raise Undescribable(f"the built-in function {x!r}")
-            return ("builtin", getattr(x, "__module__", None), x.__qualname__)
-        if dataclasses.is_dataclass(x):  # equinox modules among them
-            fields = []
-            for f in dataclasses.fields(x):
-                if not hasattr(x, f.name):
-                    continue
-                fields.append((f.name, self(getattr(x, f.name), static or bool(f.metadata.get("static")))))
-            return ("dataclass", self._class(type(x)), tuple(fields))
-        if _trusted(type(x).__module__) and type(x).__repr__ is not object.__repr__:
-            # a value of jaxbody's or a trusted package's own class that says what it is (a
-            # PyTreeDef, a dtype-like): its repr, unless that is just its address
-            text = repr(x)
-            if " at 0x" not in text:
-                return ("repr", self._class(type(x)), text)
-        raise Undescribable(f"a {type(x).__module__}.{type(x).__qualname__}")
-
-    def _class(self, cls: type):
-        name = (cls.__module__, cls.__qualname__)
-        if _trusted(cls.__module__):
-            return ("class",) + name
-        # a user's class: what its own body defines (methods by code, class-level values)
-        body = []
-        for attr, value in sorted(vars(cls).items()):
-            if attr.startswith("__") and attr.endswith("__") or attr == "_abc_impl":
-                if not (isinstance(value, types.FunctionType) and value.__qualname__.startswith(cls.__qualname__ + ".")):
-                    continue  # written by Python, dataclasses or equinox, not by the user
-            if isinstance(value, (staticmethod, classmethod)):
-                value = value.__func__
-            if isinstance(value, property):
-                value = (value.fget, value.fset)
-            body.append((attr, self(value)))
-        return ("class",) + name + (tuple(body), tuple(self._class(b) for b in cls.__bases__ if b is not object))
-
-    def _module(self, module: types.ModuleType, names: frozenset):
-        if _trusted(module.__name__):
-            return ("module", module.__name__)
-        # a user's module: the attributes the code that reached it names
-        attrs = tuple((n, self(getattr(module, n), True, names)) for n in sorted(names) if hasattr(module, n))
-        return ("module", module.__name__, attrs)
-
-    def _function(self, fn: types.FunctionType):
-        qualname = fn.__qualname__
-        if _trusted(fn.__module__) and "<locals>" not in qualname and not fn.__closure__:
-            return ("function", fn.__module__, qualname)
-        names = frozenset(_code_names(fn.__code__))
-        cells = tuple(self(c.cell_contents, True, names) if _filled(c) else ("empty",) for c in fn.__closure__ or ())
-        globals_ = tuple((n, self(fn.__globals__[n], True, names)) for n in sorted(names) if n in fn.__globals__)
-        return ("function", fn.__module__, qualname, _code(fn.__code__), cells, globals_,
-                self(fn.__defaults__), self(fn.__kwdefaults__))
-
-
-def _aval(x) -> tuple:
-    """An input array's shape, dtype and weak type (a traced one's too, or a
-    :class:`jax.ShapeDtypeStruct` standing for an array not yet computed)."""
-    aval = x if isinstance(x, jax.ShapeDtypeStruct) else jax.typeof(x)
-    return (tuple(aval.shape), str(aval.dtype), bool(getattr(aval, "weak_type", False)))
-
-
-def _is_input(x) -> bool:
-    """An input of a program: an array, or the shape of one (:func:`call_then` prepares a
-    program for outputs that are not computed yet)."""
-    return eqx.is_array(x) or isinstance(x, jax.ShapeDtypeStruct)
-
-
-def _filled(cell) -> bool:
-    try:
-        cell.cell_contents
-    except ValueError:
-        return False
-    return True
-
-
-def describe(x, static: bool = False):
-    """``x`` described as nested tuples of plain data, the input arrays by shape and dtype (all
-    arrays by value with ``static=True``); raises :class:`Undescribable` where some part of it
-    cannot be described."""
-    return _Describer()(x, static)
-
-
-@functools.cache
-def _source_hash() -> str:
-    """A hash of jaxbody's own source files."""
-    root = Path(__file__).resolve().parent
-    digest = hashlib.sha256()
-    for path in sorted(root.rglob("*")):
-        if path.suffix in (".py", ".cc", ".h") and path.is_file():
-            digest.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes())
-    return digest.hexdigest()
-
-
-def _environment() -> tuple:
-    """What a trace depends on besides its arguments: package versions, JAX's configuration,
-    jaxbody's environment variables (the cache's place aside) and the CPU count (the native
-    kernel's default threads)."""
-    versions = tuple((name, getattr(importlib.import_module(name), "__version__", "?")) for name in _VERSIONED)
-    config = _jax_settings()
-    env = tuple(sorted((k, v) for k, v in os.environ.items()
-                       if (k.startswith("JAXBODY_") and k not in ("JAXBODY_CACHE_DIR", ENV_SWITCH)) or k == "CXX"))
-    return (_FORMAT, _source_hash(), versions, config, env, os.cpu_count(), sys.version_info[:2],
-            jax.default_backend())
-
-
-def _jax_settings() -> tuple:
-    """JAX's settings that change a trace, as this thread sees them (a context manager's are
-    its thread's own)."""
-    return tuple((name, str(getattr(jax.config, name))) for name in (
-        "jax_enable_x64", "jax_default_matmul_precision", "jax_numpy_dtype_promotion", "jax_numpy_rank_promotion",
-        "jax_default_prng_impl", "jax_platforms"))
-
-
-def fingerprint(name: str, args, differentiated: tuple = ()) -> str:
-    """The key of the program ``name`` of ``args`` (see the module docstring) or, where
-    ``differentiated`` marks input arrays, of its derivative with respect to those; raises
-    :class:`Undescribable` where the arguments cannot be fingerprinted."""
-    text = repr((name, tuple(differentiated), _environment(), describe(args)))
-    return hashlib.sha256(text.encode()).hexdigest()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -396,7 +183,7 @@ def _export(fn, args, leaves, treedef):
         skeleton.append(_skeleton(out, outputs))
         return outputs
 
-    static_part = eqx.partition(args, _is_input)[1]
+    static_part = eqx.partition(args, is_input)[1]
     specs = _specs(leaves)
     program = jax.jit(flat)
     # traced first: the FFI targets it registers are then known to the export's custom-call
@@ -421,7 +208,7 @@ def _needed(exported) -> tuple:
 
 
 def _specs(leaves) -> list:
-    return [jax.ShapeDtypeStruct(shape, dtype, weak_type=weak) for shape, dtype, weak in map(_aval, leaves)]
+    return [jax.ShapeDtypeStruct(shape, dtype, weak_type=weak) for shape, dtype, weak in map(input_aval, leaves)]
 
 
 def _reverse_function(fn, static_part, treedef, n_out, in_mask, out_mask):
@@ -460,7 +247,7 @@ def _export_derivative(fn, args, leaves, treedef, primal: _Entry, mask) -> _Entr
     """The program of :func:`_reverse_function` (``mask``: the input and output masks)."""
     in_mask, out_mask = mask
     outputs = primal.exported.out_avals
-    reverse = _reverse_function(fn, eqx.partition(args, _is_input)[1], treedef, len(outputs), in_mask, out_mask)
+    reverse = _reverse_function(fn, eqx.partition(args, is_input)[1], treedef, len(outputs), in_mask, out_mask)
     specs = _reverse_specs(leaves, outputs, out_mask)
     exported = _exported(jax.jit(reverse), specs)
     return _Entry(exported, None, _needed(exported))
@@ -496,8 +283,8 @@ def _differentiated(fn, args, name, primal: _Entry, leaves, treedef, static_part
             return (tuple(jnp.zeros_like(v) for v in values),)
         kept = [c for c, keep in zip(cotangents, out_mask) if keep]
         mask = (in_mask, out_mask)
-        if out_mask in ahead:
-            ahead[out_mask].join()  # the same entry, being read by its thread: waited for, not read twice
+        for thread in ahead.values():  # this mask's entry, being read by its thread: waited for, not read twice
+            thread.join()
         entry = _entry(fn, args, name, leaves, treedef, static_part, mask, primal)
         if entry is None:  # not stored: the same derivative, traced
             _count("traced")
@@ -573,7 +360,7 @@ def _reverse_ahead(fn, args, name, primal, leaves, treedef, static_part, in_mask
         return {}
     outputs = primal.exported.out_avals
     threads = {}
-    settings = _jax_settings()
+    settings = jax_settings()
     for out_mask in map(tuple, _known_masks(path)):
         if len(out_mask) != len(outputs):
             continue
@@ -581,7 +368,7 @@ def _reverse_ahead(fn, args, name, primal, leaves, treedef, static_part, in_mask
 
         def work(out_mask=out_mask, specs=specs):
             try:
-                if _jax_settings() != settings:
+                if jax_settings() != settings:
                     return
                 entry = _entry(fn, args, name, leaves, treedef, static_part, (in_mask, out_mask), primal, make=False)
                 if entry is not None:
@@ -589,8 +376,7 @@ def _reverse_ahead(fn, args, name, primal, leaves, treedef, static_part, in_mask
             except Exception:  # noqa: BLE001 (the reverse pass does the same work and reports)
                 pass
 
-        threads[out_mask] = threading.Thread(target=work, name="jaxbody-reverse-ahead", daemon=True)
-        threads[out_mask].start()
+        threads[out_mask] = _start(work, "jaxbody-reverse-ahead")
     return threads
 
 
@@ -705,7 +491,7 @@ def _local_key(name, leaves, treedef, static_part):
     """What ``jax.jit`` would key its own cache by in this process: the static structure and the
     input shapes (``None``: a static part that cannot be hashed)."""
     static_leaves, static_def = jax.tree.flatten(static_part)
-    key = (name, treedef, static_def, tuple(static_leaves), tuple(_aval(x) for x in leaves))
+    key = (name, treedef, static_def, tuple(static_leaves), tuple(input_aval(x) for x in leaves))
     try:
         hash(key)
     except TypeError:
@@ -721,7 +507,7 @@ def call(fn, args: tuple, name: str):
     ``name`` tells its programs apart from other functions'."""
     if not enabled():
         return _traced(fn, args)
-    dynamic, static_part = eqx.partition(args, _is_input)
+    dynamic, static_part = eqx.partition(args, is_input)
     leaves, treedef = jax.tree.flatten(dynamic)
     mask = tuple(isinstance(x, jax.core.Tracer) for x in leaves)
     # traced: only under reverse-mode differentiation of an eager call (jax.grad of a function
@@ -754,7 +540,7 @@ def call_then(first, first_args: tuple, first_name: str, second, second_args, se
         a = _traced(first, first_args)
         return a, _traced(second, second_args(a))
     ahead = None
-    dynamic, static_part = eqx.partition(first_args, _is_input)
+    dynamic, static_part = eqx.partition(first_args, is_input)
     leaves, treedef = jax.tree.flatten(dynamic)
     # on concrete inputs, or under reverse-mode differentiation of concrete ones (as call runs)
     if all(_reverse_of_concrete(x) for x in leaves if isinstance(x, jax.core.Tracer)) and _single_device(leaves):
@@ -772,15 +558,15 @@ def call_then(first, first_args: tuple, first_name: str, second, second_args, se
 def _ahead(fn, args, name) -> threading.Thread | None:
     """Start a thread that finds or makes the program of ``fn(*args)`` (``args``: its input
     arrays as shapes) and compiles it for :func:`call` (see :func:`call_then`)."""
-    settings = _jax_settings()
+    settings = jax_settings()
 
     def work():
         try:
             # JAX's settings in a context manager are the caller's thread's own: a thread that
             # sees others would trace another program, so it leaves the work to the call
-            if _jax_settings() != settings:
+            if jax_settings() != settings:
                 return
-            dynamic, static_part = eqx.partition(args, _is_input)
+            dynamic, static_part = eqx.partition(args, is_input)
             leaves, treedef = jax.tree.flatten(dynamic)
             entry = _entry(fn, args, name, leaves, treedef, static_part, ())
             if entry is not None:
@@ -788,9 +574,27 @@ def _ahead(fn, args, name) -> threading.Thread | None:
         except Exception:  # noqa: BLE001 (the call that follows does the same work and reports)
             pass
 
-    thread = threading.Thread(target=work, name="jaxbody-program-ahead", daemon=True)
+    return _start(work, "jaxbody-program-ahead")
+
+
+_threads: list = []  # the background threads started (joined at exit: see _start)
+
+
+def _start(work, name: str) -> threading.Thread:
+    """Start ``work`` in a background thread. The interpreter waits for it at exit: tearing
+    Python down under an XLA compile still running on another thread can crash the process."""
+    thread = threading.Thread(target=work, name=name, daemon=True)
+    with _lock:
+        _threads[:] = [t for t in _threads if t.is_alive()]
+        _threads.append(thread)
     thread.start()
     return thread
+
+
+@atexit.register
+def _join_threads() -> None:
+    for thread in list(_threads):
+        thread.join()
 
 
 def _single_device(leaves) -> bool:
