@@ -63,6 +63,55 @@ def _profile(jax):
     return events
 
 
+def case_setup(case: str, cassie: str | None = None):
+    """``(system, q0, v0, loss, arg)`` of a case (see the module docstring): the model or system
+    made, its initial state, and the loss whose gradient at ``arg`` is taken."""
+    import jax.numpy as jnp
+
+    import jaxbody as jb
+
+    if case in ("panda", "iiwa", "cassie"):
+        path = {"panda": HERE.parent / "jaxbody" / "models" / "panda.xml", "iiwa": HERE / "models" / "iiwa_like.xml"}.get(case, cassie)
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            model = jb.from_mjcf(str(path))
+        q0, v0 = model.qpos0 + (0.3 if case != "cassie" else 0.0), jnp.zeros(model.nv)
+        if case == "cassie":
+            system = jb.scene(model)
+
+            def loss(s):  # with respect to a scale of gravity (any velocity would have to satisfy the loops)
+                sc = jb.scene(model, gravity=s * model.gravity)
+                return jnp.sum(jb.simulate(sc, q0, v0, 1.0).q[-1] ** 2)
+
+            return system, q0, v0, loss, jnp.asarray(1.0)
+        q_ref = model.qpos0
+
+        def pd(t, q, v, gains):
+            return gains[0] * (q_ref - q) - gains[1] * v
+
+        gains = jnp.asarray([20.0, 2.0])
+        system = jb.scene(model, actuation=(pd, gains))
+
+        def loss(g):
+            sc = jb.scene(model, actuation=(pd, g))
+            return jnp.sum(jb.simulate(sc, q0, v0, 1.0).q[-1] ** 2)
+
+        return system, q0, v0, loss, gains
+    from maggi import disk_state, four_bar
+
+    if case == "disk":
+        _, system, q0, v0 = disk_state("rolling")
+    else:
+        system, q0, v0 = four_bar()
+
+    def loss(s):
+        return jnp.sum(jb.simulate(system, q0, s * v0, 1.0).q[-1] ** 2)
+
+    return system, q0, v0, loss, jnp.asarray(1.0)
+
+
 def _worker(case: str, cassie: str | None) -> dict:
     """One fresh process: import, model, first simulate, first gradient."""
     t = time.perf_counter()
@@ -98,53 +147,9 @@ def _worker(case: str, cassie: str | None) -> dict:
         build.build_library = timed
 
     t = time.perf_counter()
-    if case in ("panda", "iiwa", "cassie"):
-        path = {"panda": HERE.parent / "jaxbody" / "models" / "panda.xml", "iiwa": HERE / "models" / "iiwa_like.xml"}.get(case, cassie)
-        import warnings
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            model = jb.from_mjcf(str(path))
-        out["model_s"] = time.perf_counter() - t
-        q0, v0 = model.qpos0 + (0.3 if case != "cassie" else 0.0), jnp.zeros(model.nv)
-        if case == "cassie":
-            system = jb.scene(model)
-            out["scene"] = repr(system)
-
-            def loss(s):  # with respect to a scale of gravity (any velocity would have to satisfy the loops)
-                sc = jb.scene(model, gravity=s * model.gravity)
-                return jnp.sum(jb.simulate(sc, q0, v0, 1.0).q[-1] ** 2)
-
-            arg = jnp.asarray(1.0)
-        else:
-            q_ref = model.qpos0
-
-            def pd(t, q, v, gains):
-                return gains[0] * (q_ref - q) - gains[1] * v
-
-            gains = jnp.asarray([20.0, 2.0])
-            system = jb.scene(model, actuation=(pd, gains))
-            out["scene"] = repr(system)
-
-            def loss(g):
-                sc = jb.scene(model, actuation=(pd, g))
-                return jnp.sum(jb.simulate(sc, q0, v0, 1.0).q[-1] ** 2)
-
-            arg = gains
-    else:
-        from maggi import disk_state, four_bar
-
-        if case == "disk":
-            _, system, q0, v0 = disk_state("rolling")
-        else:
-            system, q0, v0 = four_bar()
-        out["model_s"] = time.perf_counter() - t
-        out["scene"] = type(system).__name__
-
-        def loss(s):
-            return jnp.sum(jb.simulate(system, q0, s * v0, 1.0).q[-1] ** 2)
-
-        arg = jnp.asarray(1.0)
+    system, q0, v0, loss, arg = case_setup(case, cassie)
+    out["model_s"] = time.perf_counter() - t
+    out["scene"] = repr(system) if case in ("panda", "iiwa", "cassie") else type(system).__name__
     stage = {k: list(v) for k, v in events.items()}
     t = time.perf_counter()
     sol = jb.simulate(system, q0, v0, 1.0)
@@ -256,13 +261,14 @@ def _write(record, args):
     rows = []
     for r in record["runs"]:
         if "error" in r:
-            rows.append((r["case"], r["tree"], r["phase"], "failed: " + r["error"].strip().splitlines()[-1][:80], "", "", "", "", "", ""))
+            rows.append((r["case"], r["tree"], r["phase"], "failed: " + r["error"].strip().splitlines()[-1][:80], "", "", "", "", "", "", ""))
             continue
         tgt = TARGETS[r["phase"]]
         mark = lambda k: f"{r[k]:.2f}" + ("" if r[k] <= tgt[k] else " ✗")  # noqa: E731
         rows.append((r["case"], r["tree"], r["phase"], f"{r['import_s']:.2f}", mark("model_s"), mark("simulate_s"), mark("grad_s"),
                      _compiles(r["profile_simulate"]), _compiles(r["profile_grad"]),
-                     f"{r['native_build_simulate'][0] + r['native_build_grad'][0]:.1f} s ({r['native_build_simulate'][1] + r['native_build_grad'][1]})"))
+                     f"{r['native_build_simulate'][0] + r['native_build_grad'][0]:.1f} s ({r['native_build_simulate'][1] + r['native_build_grad'][1]})",
+                     f"{r['process_s']:.1f}"))
     md = ["# First results: model import, first simulation and first gradient, empty and warm cache", "",
           stamp_markdown(record["stamp"]), "",
           *([f"Joined from {len(record['stamp']['merged_from'])} runs made side by side (`--merge`); their load "
@@ -273,9 +279,10 @@ def _write(record, args):
           "`compiled`: XLA programs compiled / their XLA compile seconds / persistent-cache hits (JAX's monitoring "
           "events; a hit is a program loaded instead of compiled). `native builds`: seconds in the C++ compiler (libraries "
           "looked up or built), summed over the threads that ran it: a solve's builds run beside each other and beside "
-          "its trace, so the sum can exceed the wall time.", "",
+          "its trace, so the sum can exceed the wall time. `process`: the worker process's whole time, start to "
+          "exit (its exit waits for the optimised compiles and builds still running in the background).", "",
           markdown_table(["case", "jaxbody", "phase", "import jaxbody", "model", "first simulate", "first gradient",
-                          "compiled (simulate)", "compiled (gradient)", "native builds"], rows), ""]
+                          "compiled (simulate)", "compiled (gradient)", "native builds", "process"], rows), ""]
     (args.out / f"{args.name}.md").write_text("\n".join(md))
     print("\n".join(md))
 

@@ -26,8 +26,8 @@ import jax
 
 from .compilation_cache import cache_root
 
-__all__ = ["COMPILER_FLAGS", "OPTIMISATION_LEVELS", "build_library", "cache_dir", "compiler", "compiler_flags",
-           "cpu_signature", "ffi_unavailable_reason"]
+__all__ = ["COMPILER_FLAGS", "LEVEL_SWITCH", "OPTIMISATION_LEVELS", "build_library", "cache_dir", "compiler",
+           "compiler_flags", "cpu_signature", "ffi_unavailable_reason", "library_path"]
 
 
 def compiler() -> str | None:
@@ -61,15 +61,21 @@ COMPILER_FLAGS = ("-march=native", "-std=gnu++17", "-ffp-contract=fast", "-fno-m
 OPTIMISATION_LEVELS = ("-O0", "-O1", "-O2", "-O3")
 
 
-def compiler_flags() -> tuple[str, ...]:
-    """The flags of a build: ``$JAXBODY_NATIVE_OPTIMISATION`` (default ``-O2``) and :data:`COMPILER_FLAGS`.
+#: The environment variable that sets the optimisation level of every build.
+LEVEL_SWITCH = "JAXBODY_NATIVE_OPTIMISATION"
+
+
+def compiler_flags(level: str | None = None) -> tuple[str, ...]:
+    """The flags of a build: the optimisation ``level``, default ``$JAXBODY_NATIVE_OPTIMISATION``,
+    else ``-O2``, and :data:`COMPILER_FLAGS`.
 
     ``-O0`` builds the whole-solve programs of a 7-DoF arm about 10x faster than ``-O2`` (8 s
     against 86 s for Panda's reverse sweep) and runs them several times slower: the test suite,
-    which builds many programs and runs each briefly, uses it; users keep ``-O2``."""
-    level = os.environ.get("JAXBODY_NATIVE_OPTIMISATION", "-O2")
+    which builds many programs and runs each briefly, uses it; the native kernel's first builds
+    use it while their ``-O2`` builds run in the background (:mod:`jaxbody.tiered_compilation`)."""
+    level = level or os.environ.get(LEVEL_SWITCH, "-O2")
     if level not in OPTIMISATION_LEVELS:
-        raise ValueError(f"JAXBODY_NATIVE_OPTIMISATION must be one of {', '.join(OPTIMISATION_LEVELS)}, got {level!r}")
+        raise ValueError(f"{LEVEL_SWITCH} must be one of {', '.join(OPTIMISATION_LEVELS)}, got {level!r}")
     return (level, *COMPILER_FLAGS)
 
 
@@ -84,23 +90,33 @@ def ffi_unavailable_reason() -> str | None:
     return None
 
 
+def library_path(source, stem: str, flags: tuple[str, ...] | None = None, identity: str | None = None) -> Path | None:
+    """Where :func:`build_library` keeps the library of these arguments (built or not); ``None``
+    where there is no compiler."""
+    cxx = compiler()
+    if cxx is None:
+        return None
+    flags = compiler_flags() if flags is None else tuple(flags)
+    text = identity if identity is not None else source
+    key = hashlib.sha256("\n".join((text, cxx, *flags, cpu_signature(), jax.__version__)).encode()).hexdigest()[:24]
+    return cache_dir() / f"{stem}_{key}.so"
+
+
 def build_library(source, stem: str, what: str = "the native kernel", flags: tuple[str, ...] | None = None,
-                  identity: str | None = None) -> Path:
+                  identity: str | None = None, niceness: int = 0) -> Path:
     """Compile ``source`` to a shared library in the cache (once per source, compiler, flags and CPU).
 
     ``what`` names the library in errors; ``flags`` default to :func:`compiler_flags`. With an
     ``identity`` (a text the source is a function of) the library is keyed by it instead of the
-    source, and ``source`` may be a function that makes it, called only when the library is built."""
-    cxx = compiler()
-    if cxx is None:
+    source, and ``source`` may be a function that makes it, called only when the library is built.
+    ``niceness``: the compiler process's (a build in the background gives way to the caller's work)."""
+    target = library_path(source, stem, flags, identity)
+    if target is None:
         raise RuntimeError(f"{what} needs a C++ compiler (g++ or $CXX); use kernel='vectorised'"
                            if what == "the native kernel" else f"{what} needs a C++ compiler (g++ or $CXX)")
-    flags = compiler_flags() if flags is None else tuple(flags)
-    text = identity if identity is not None else source
-    key = hashlib.sha256("\n".join((text, cxx, *flags, cpu_signature(), jax.__version__)).encode()).hexdigest()[:24]
-    target = cache_dir() / f"{stem}_{key}.so"
     if target.is_file():
         return target
+    flags = compiler_flags() if flags is None else tuple(flags)
     # one builder of a library at a time across processes (test workers, a batch job's
     # processes): the others wait on the lock and load what it built
     with open(target.with_suffix(".lock"), "a") as lock, _exclusive(lock):
@@ -110,10 +126,16 @@ def build_library(source, stem: str, what: str = "the native kernel", flags: tup
             src = Path(tmp) / "src.cc"
             src.write_text(source() if callable(source) else source)
             out = Path(tmp) / "lib.so"
-            cmd = [cxx, *flags, f"-I{jax.ffi.include_dir()}", str(src), "-o", str(out)]
-            proc = subprocess.run(cmd, capture_output=True, text=True)
+            cmd = [compiler(), *flags, f"-I{jax.ffi.include_dir()}", str(src), "-o", str(out)]
+            proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            if niceness:
+                try:
+                    os.setpriority(os.PRIO_PROCESS, proc.pid, niceness)
+                except (AttributeError, OSError):  # not POSIX, or already done
+                    pass
+            _, stderr = proc.communicate()
             if proc.returncode != 0:
-                raise RuntimeError(f"building {what} failed ({' '.join(cmd)}):\n{proc.stderr[-4000:]}")
+                raise RuntimeError(f"building {what} failed ({' '.join(cmd)}):\n{stderr[-4000:]}")
             os.replace(out, target)  # atomic: a process that does not take the lock never sees half a file
     return target
 

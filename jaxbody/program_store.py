@@ -43,9 +43,11 @@ from .compilation_cache import cache_root
 from .ffi_targets import needed, register, targets
 from .program_fingerprint import TRUSTED, Undescribable, describe, input_aval, is_input, jax_settings
 from .program_fingerprint import fingerprint as _fingerprint
+from .tiered_compilation import ENV_SWITCH as TIERED_SWITCH
+from .tiered_compilation import MARK_SUFFIX, compile_tiered
 
 __all__ = ["ENV_SWITCH", "MAX_BYTES", "TRUSTED", "Undescribable", "call", "call_then", "counts", "describe", "enabled",
-           "fingerprint", "forget", "store_dir"]
+           "fingerprint", "forget", "store_dir", "wait"]
 
 #: The environment variable that turns the store off (``0``, ``off``, ``false``, ``no``).
 ENV_SWITCH = "JAXBODY_PROGRAM_STORE"
@@ -67,7 +69,9 @@ def fingerprint(name: str, args, differentiated: tuple = ()) -> str:
     its derivative) is stored under: :func:`jaxbody.program_fingerprint.fingerprint` with the
     store's format, its switch left out. Raises :class:`Undescribable` where the arguments
     cannot be fingerprinted."""
-    return _fingerprint(name, args, differentiated, context=(_FORMAT,), unkeyed=(ENV_SWITCH,))
+    # the switches of the store and of tiered compilation change how a program is kept and
+    # compiled, not what it is
+    return _fingerprint(name, args, differentiated, context=(_FORMAT,), unkeyed=(ENV_SWITCH, TIERED_SWITCH))
 
 
 def store_dir() -> Path:
@@ -136,12 +140,16 @@ class _Entry:
     exported: object  # jax.export.Exported
     outputs: object  # the outputs' skeleton
     notes: tuple  # the registrations the program needs (ffi_targets.needed)
+    path: Path | None = None  # the file it is stored in (beside it: tiered_compilation's marker)
+    # the jitted function of the input arrays it was exported from, its trace cached: in the
+    # process that traced it, its derivative is traced from that trace (_reverse_function)
+    traced: object = dataclasses.field(default=None, compare=False, repr=False)
 
 
 _entries: dict = {}  # in this process: (function, static structure, input shapes) -> _Entry or None
 # how each call was served in this process (counts)
-_counts = {"loaded": 0, "stored": 0, "declined": 0, "traced": 0, "ahead": 0}
-_compiled: dict = {}  # id of an _Entry -> (the entry, its executable compiled ahead: call_then)
+_counts = {"loaded": 0, "stored": 0, "declined": 0, "traced": 0, "ahead": 0, "optimised": 0}
+_compiled: dict = {}  # id of an _Entry -> (the entry, its executable: _executable)
 _calls: dict = {}  # id of an _Entry -> (the entry, its jitted call: _jitted)
 _lock = threading.Lock()  # the two dicts above, written by call_then's background thread too
 
@@ -157,7 +165,8 @@ def counts() -> dict:
     and written), ``declined`` (traced: arguments that cannot be fingerprinted, or a program
     that cannot be stored), and ``traced`` calls in all that did not run a stored program
     (switched off, or traced arguments); ``ahead``: programs compiled in a background thread
-    while another ran (:func:`call_then`)."""
+    while another ran (:func:`call_then`); ``optimised``: programs whose optimised compile,
+    made in the background, replaced a quick first one (:mod:`jaxbody.tiered_compilation`)."""
     with _lock:
         return dict(_counts)
 
@@ -190,7 +199,7 @@ def _export(fn, args, leaves, treedef):
     # check (which reuses this trace); which of them it calls is read from its text
     program.trace(*specs)
     exported = _exported(program, specs)
-    return _Entry(exported, skeleton[-1], _needed(exported))
+    return _Entry(exported, skeleton[-1], _needed(exported), traced=program)
 
 
 def _exported(program, specs):
@@ -211,7 +220,7 @@ def _specs(leaves) -> list:
     return [jax.ShapeDtypeStruct(shape, dtype, weak_type=weak) for shape, dtype, weak in map(input_aval, leaves)]
 
 
-def _reverse_function(fn, static_part, treedef, n_out, in_mask, out_mask):
+def _reverse_function(fn, static_part, treedef, n_out, in_mask, out_mask, traced=None):
     """The reverse derivative of ``fn`` as a function of its input arrays and the cotangents
     of the outputs ``out_mask`` marks (of ``n_out``), returning the cotangents of the inputs
     ``in_mask`` marks: ``jax.vjp`` of ``fn``, whose forward pass it runs again (the forward pass
@@ -227,7 +236,12 @@ def _reverse_function(fn, static_part, treedef, n_out, in_mask, out_mask):
             it = iter(diff)
             full = [next(it) if m else a for a, m in zip(arrays, in_mask)]
             out: list = []
-            _skeleton(fn(*eqx.combine(jax.tree.unflatten(treedef, full), static_part)), out)
+            if traced is not None:
+                # the forward pass as the trace the primal program was exported from: JAX
+                # differentiates its equations without running jaxbody's and diffrax's Python again
+                out = list(traced(*full))
+            else:
+                _skeleton(fn(*eqx.combine(jax.tree.unflatten(treedef, full), static_part)), out)
             assert len(out) == n_out
             return [o for o, keep in zip(out, out_mask) if keep]
 
@@ -247,7 +261,8 @@ def _export_derivative(fn, args, leaves, treedef, primal: _Entry, mask) -> _Entr
     """The program of :func:`_reverse_function` (``mask``: the input and output masks)."""
     in_mask, out_mask = mask
     outputs = primal.exported.out_avals
-    reverse = _reverse_function(fn, eqx.partition(args, is_input)[1], treedef, len(outputs), in_mask, out_mask)
+    reverse = _reverse_function(fn, eqx.partition(args, is_input)[1], treedef, len(outputs), in_mask, out_mask,
+                                primal.traced)
     specs = _reverse_specs(leaves, outputs, out_mask)
     exported = _exported(jax.jit(reverse), specs)
     return _Entry(exported, None, _needed(exported))
@@ -400,11 +415,20 @@ def _executable(entry: "_Entry", specs) -> tuple:
     (once per entry in a process). Compiled from the shapes alone, in the thread that prepares
     it ahead and in the call that needs it alike: the same XLA program whichever did, so that
     JAX's persistent cache finds in a later process what an earlier one compiled (a call on
-    the arrays themselves would key the program by where each array is placed, too)."""
+    the arrays themselves would key the program by where each array is placed, too). A program
+    not yet compiled optimised on this machine is compiled quickly first, and its optimised
+    executable replaces the quick one when a background thread has compiled it
+    (:func:`jaxbody.tiered_compilation.compile_tiered`)."""
     with _lock:
         if id(entry) in _compiled:
             return _compiled[id(entry)][1], False
-    compiled = _jitted(entry).lower(*specs).compile()
+
+    def install(optimised):  # the optimised program, compiled in the background, runs from now on
+        with _lock:
+            _compiled[id(entry)] = (entry, optimised)
+        _count("optimised")
+
+    compiled = compile_tiered(_jitted(entry).lower(*specs), entry.path, install, _start)
     with _lock:
         if id(entry) in _compiled:  # another thread compiled it meanwhile
             return _compiled[id(entry)][1], False
@@ -442,7 +466,7 @@ def _read(path: Path):
         exported = jax.export.deserialize(bytearray(data["exported"]))
     except Exception:  # noqa: BLE001
         return None
-    return _Entry(exported, data["outputs"], tuple(data["notes"]))
+    return _Entry(exported, data["outputs"], tuple(data["notes"]), path)
 
 
 def _write(path: Path, entry: "_Entry | None", reason: str = "") -> None:
@@ -480,10 +504,11 @@ def _bound(directory: Path) -> None:
     for _, size, path in sorted(entries):
         if total <= MAX_BYTES:
             break
-        try:
-            os.remove(path)
-        except OSError:
-            pass
+        for gone in (path, path + MARK_SUFFIX):  # the program, and its tiered compilation's mark
+            try:
+                os.remove(gone)
+            except OSError:
+                pass
         total -= size
 
 
@@ -592,9 +617,17 @@ def _start(work, name: str) -> threading.Thread:
 
 
 @atexit.register
-def _join_threads() -> None:
-    for thread in list(_threads):
-        thread.join()
+def wait() -> None:
+    """Wait for this process's background work: programs prepared ahead (:func:`call_then`),
+    reverse programs compiled ahead, optimised compiles replacing quick ones
+    (:mod:`jaxbody.tiered_compilation`). The interpreter waits for it at exit anyway."""
+    while True:
+        with _lock:
+            running = [t for t in _threads if t.is_alive()]
+        if not running:
+            return
+        for thread in running:  # a thread may start another (a quick compile ahead starts its optimised one)
+            thread.join()
 
 
 def _single_device(leaves) -> bool:
@@ -661,6 +694,7 @@ def _lookup(fn, args, name, leaves, treedef, mask, primal, make=True):
         _write(path, None, f"{type(err).__name__}: {err}")
         _count("declined")
         return None
+    entry = dataclasses.replace(entry, path=path)
     _write(path, entry)
     _count("stored")
     return entry

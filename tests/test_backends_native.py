@@ -589,13 +589,13 @@ def test_a_first_solve_builds_its_programs_beside_its_trace(tmp_path, monkeypatc
 
     monkeypatch.setenv("JAXBODY_CACHE_DIR", str(tmp_path))
     compiled = []
-    run = subprocess.run
+    popen = subprocess.Popen
 
     def recording(cmd, *args, **kwargs):
         compiled.append(threading.current_thread().name)
-        return run(cmd, *args, **kwargs)
+        return popen(cmd, *args, **kwargs)
 
-    monkeypatch.setattr(subprocess, "run", recording)
+    monkeypatch.setattr(subprocess, "Popen", recording)
     # a tree no other test builds: its kernels are new to this process
     model = random_model(4711, n_body=2, kinds=("hinge", "slide"))
     scene = jb.scene(model, kernel="native")
@@ -608,3 +608,47 @@ def test_a_first_solve_builds_its_programs_beside_its_trace(tmp_path, monkeypatc
     count = len(compiled)
     jb.simulate(scene, q0, 0.5 * v0, 0.2, saveat=diffrax.SaveAt(t1=True))
     assert len(compiled) == count
+
+
+def test_a_quick_first_build_serves_until_the_optimised_build_replaces_it(tmp_path, monkeypatch):
+    """With tiering on (users' default; the suite pins -O0), a program's first build is at -O0
+    and runs at once; its -O2 build, made in the background, is registered under the same key,
+    so the compiled XLA program that calls it runs the optimised code from then on, unchanged
+    and not compiled again, with the same numbers."""
+    import threading
+    import uuid
+
+    from jaxbody import cxx, ffi_targets, tiered_compilation
+
+    monkeypatch.setenv("JAXBODY_CACHE_DIR", str(tmp_path))
+    monkeypatch.delenv(cxx.LEVEL_SWITCH, raising=False)
+    monkeypatch.delenv(tiered_compilation.ENV_SWITCH, raising=False)
+    assert tiered_compilation.native_enabled()
+    # a tree no other test builds (its name is part of the library's identity)
+    b, upper = jb.ModelBuilder(), f"upper_{uuid.uuid4().hex[:8]}"
+    b.add_body(upper, mass=1.0, com=(0.0, 0.0, -0.25), inertia=(0.01, 0.01, 0.001), joints=[jb.Hinge(axis=(0, 1, 0))])
+    b.add_body("lower", upper, pos=(0, 0, -0.5), mass=0.7, com=(0.0, 0.0, -0.2), inertia=(0.008, 0.008, 0.001),
+               joints=[jb.Hinge(axis=(1, 0, 0))])
+    model = b.build()
+    # the optimised build waits for this test's signal: what runs before it is the quick build
+    release = threading.Event()
+    optimise = native.build.Kernel._optimise
+    monkeypatch.setattr(native.build.Kernel, "_optimise", lambda self, build: (release.wait(60), optimise(self, build)))
+    q, v, tau = jnp.asarray([0.3, -0.4]), jnp.asarray([0.5, 0.2]), jnp.asarray([0.1, -0.2])
+    program = jax.jit(lambda q, v, tau: backends.acceleration(model, q, v, tau, kernel="native"))
+
+    def registration():  # how a stored program would register the kernel it calls again
+        (call,) = [c for c in ffi_targets.needed(program.lower(q, v, tau).as_text()) if c[1] == "register_program"]
+        return call[2]
+
+    quick = program(q, v, tau)
+    final, dtype, quick_library = registration()
+    assert quick_library != final and os.path.isfile(quick_library) and not os.path.isfile(final)
+    release.set()
+    native.build.wait_for_optimised_builds()
+    assert os.path.isfile(final) and registration() == (final, dtype)  # registered in its place
+    optimised = program(q, v, tau)
+    assert program._cache_size() == 1  # the same XLA program
+    reference = backends.acceleration(model, q, v, tau, kernel="vectorised")
+    np.testing.assert_allclose(quick, reference, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(optimised, reference, rtol=1e-12, atol=1e-12)

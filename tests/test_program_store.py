@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 import jaxbody as jb
-from jaxbody import program_store
+from jaxbody import program_store, tiered_compilation
 
 
 @pytest.fixture
@@ -103,6 +103,54 @@ def test_stored_program_gives_the_traced_results_and_gradients(store, monkeypatc
     loss, h = _loss(model, pd, q0), 1e-6
     fd = [(loss(gains.at[i].add(h)) - loss(gains.at[i].add(-h))) / (2 * h) for i in range(2)]
     np.testing.assert_allclose(grad, fd, rtol=1e-6)
+
+
+@pytest.fixture
+def tiered(monkeypatch):
+    """Tiered compilation on, as users have it: the suite's own optimisation level in
+    ``$XLA_FLAGS`` (tests/conftest.py) turns it off."""
+    flags = [f for f in os.environ.get("XLA_FLAGS", "").split() if not f.startswith("--xla_backend_optimization_level")]
+    monkeypatch.setenv("XLA_FLAGS", " ".join(flags))
+    monkeypatch.delenv(tiered_compilation.ENV_SWITCH, raising=False)
+    assert tiered_compilation.enabled()
+
+
+def test_a_first_call_runs_a_quick_compile_then_the_optimised_one(store, tiered):
+    model, pd = _arm(gain_offset=float(np.random.default_rng().uniform(0.0, 1e-3)))  # a program no earlier test compiled
+    q0 = jnp.asarray([0.4, 0.1])
+    gains = jnp.asarray([8.0, 1.0])
+    scene = jb.scene(model, actuation=(pd, gains))
+    before = program_store.counts()
+    quick = jb.simulate(scene, q0, jnp.zeros(2), 0.5, n_save=11)
+    quick_grad = jax.grad(_loss(model, pd, q0))(gains)
+    program_store.wait()
+    # the solve, its saved quantities and its derivative, each compiled again optimised in the
+    # background, marked as such beside the stored program
+    first = program_store.counts()
+    assert first["optimised"] - before["optimised"] == 3
+    assert len(list(store.glob("*.pickle.optimised"))) == 3
+    # the calls after it run the optimised programs: the same numbers to rounding
+    optimised = jb.simulate(scene, q0, jnp.zeros(2), 0.5, n_save=11)
+    optimised_grad = jax.grad(_loss(model, pd, q0))(gains)
+    np.testing.assert_allclose(optimised.q, quick.q, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(optimised_grad, quick_grad, rtol=1e-11)
+    # a later process (this one's memory forgotten) finds the marks and compiles, that is loads
+    # from JAX's cache, the optimised programs at once: nothing is compiled twice
+    program_store.forget()
+    again = jb.simulate(scene, q0, jnp.zeros(2), 0.5, n_save=11)
+    again_grad = jax.grad(_loss(model, pd, q0))(gains)
+    program_store.wait()
+    assert program_store.counts()["optimised"] == first["optimised"]
+    np.testing.assert_array_equal(again.q, optimised.q)
+    np.testing.assert_array_equal(again_grad, optimised_grad)
+
+
+def test_tiered_compilation_is_off_where_switched_off_or_the_level_is_the_callers(tiered, monkeypatch):
+    monkeypatch.setenv(tiered_compilation.ENV_SWITCH, "off")
+    assert not tiered_compilation.enabled()
+    monkeypatch.delenv(tiered_compilation.ENV_SWITCH)
+    monkeypatch.setenv("XLA_FLAGS", "--xla_backend_optimization_level=2")
+    assert not tiered_compilation.enabled()
 
 
 def test_traced_calls_are_left_to_the_callers_program(store):
@@ -306,7 +354,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp
 import jaxbody as jb
-from jaxbody import program_store
+from jaxbody import program_store, tiered_compilation
 
 sys.path.insert(0, sys.argv[2])
 from test_program_store import _arm  # the arm and PD law of the in-process tests

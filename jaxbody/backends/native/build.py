@@ -15,9 +15,10 @@ import numpy as np
 
 from ...compilation_cache import cache_root
 from ...cxx import (COMPILER_FLAGS, OPTIMISATION_LEVELS, build_library, compiler, compiler_flags,  # noqa: F401  (re-exported)
-                    cpu_signature, ffi_unavailable_reason)
+                    cpu_signature, ffi_unavailable_reason, library_path)
 from ...ffi_targets import note_program, note_target
 from ...model import Model
+from ...tiered_compilation import BACKGROUND_NICENESS, QUICK_NATIVE_LEVEL, native_enabled
 from .codegen import (COMMON_TEMPLATE, generate, generate_adaptive, generate_adaptive_vjp, generate_run, generate_run_vjp,
                       HANDLER_TEMPLATE, result_widths, SCALAR_TYPES)
 from .tableaux import tableau
@@ -142,24 +143,30 @@ def _program_key(library: Path) -> int:
 
 
 _loaded: list = []  # libraries stay loaded for the life of the process (XLA holds their addresses)
-_registered: dict = {}  # library path -> its program key, once registered with its handler
+_registered: dict = {}  # program key -> the library registered under it (its quick build, or itself)
 
 
-def register_program(library: str, dtype: str) -> int:
+def register_program(library: str, dtype: str, quick: str | None = None) -> int:
     """Load a kernel's built ``library`` (a path) and register its program with the handler of
     ``dtype`` (a NumPy dtype string); returns the key traced calls name it by. Idempotent. A
-    stored program (:mod:`jaxbody.program_store`) replays this in a process that never traced it."""
+    stored program (:mod:`jaxbody.program_store`) replays this in a process that never traced it.
+
+    ``quick``: a build of the same program at a lower optimisation level, registered under
+    ``library``'s key while ``library`` is not built (its build in the background registers it
+    again when done: :meth:`Kernel.address`); an optimised program is never replaced by a quick one."""
     target = handler_target(dtype)
+    key = _program_key(Path(library))
+    loaded = library if quick is None or Path(library).is_file() else quick
     with _lock:
-        if library not in _registered:
-            lib = ctypes.cdll.LoadLibrary(library)
+        if _registered.get(key) not in (loaded, library):
+            lib = ctypes.cdll.LoadLibrary(loaded)
             _loaded.append(lib)
-            key = _program_key(Path(library))
             _handlers[target].jaxbody_register(key, ctypes.cast(lib.jaxbody_range, ctypes.c_void_p).value)
-            _registered[library] = key
-            # a stored program that calls it registers it again in a later process
-            note_program(key, __name__, "register_program", library, np.dtype(dtype).str)
-        return _registered[library]
+            _registered[key] = loaded
+        # a stored program that calls it registers it again in a later process, the optimised
+        # build where that one is built by then
+        note_program(key, __name__, "register_program", library, np.dtype(dtype).str, *(() if loaded == library else (quick,)))
+    return key
 
 
 def merge_batch(axis_size: int, args, batched) -> tuple[list, int]:
@@ -235,20 +242,62 @@ class Kernel:
     def address(self, build: str) -> int:
         """The key of the compiled program of one of :data:`BUILDS` (built and registered with the
         handler on its first call); the traced call passes this key, not an address, so that
-        the compiled XLA program is the same in every process (JAX's persistent cache)."""
+        the compiled XLA program is the same in every process (JAX's persistent cache).
+
+        Where the optimised library is not built yet and tiering is on
+        (:func:`jaxbody.tiered_compilation.native_enabled`), the quick build is registered under
+        the optimised one's key and runs until the optimised build, started in the background,
+        replaces it: the XLA program that calls the key does not change."""
         with self._build_lock:  # two threads tracing the same kernel build it once
             if build not in self._addresses:
                 # a build started ahead of use (prefetch) is waited for, not raced
                 _await_prefetch((self.key, build))
-                library = str(self.library(build))
-                self._addresses[build] = (register_program(library, self.dtype.str), library)
+                final = self.library_path(build)
+                if self._tiered(build):
+                    quick = str(self.library(build, QUICK_NATIVE_LEVEL))
+                    key = register_program(str(final), self.dtype.str, quick)
+                    future = _builders().submit(self._optimise, build)
+                    with _lock:
+                        _optimising.append(future)
+                else:
+                    key = register_program(str(self.library(build)), self.dtype.str)
+                self._addresses[build] = (key, str(final))
             return self._addresses[build][0]
 
-    def library(self, build: str) -> Path:
-        """The shared library of one of :data:`BUILDS`, built where the cache lacks it (not loaded)."""
-        stem = self.mode.replace(":", "_") + ("" if self.harmonics is None else f"_fourier{self.harmonics}")
-        return build_library(lambda: self.source.replace("@VECTOR_BYTES@", BUILDS[build]), f"{stem}_{build}",
-                             identity=self.identity(build))
+    def _tiered(self, build: str) -> bool:
+        """Whether ``build`` is built quickly first: tiering on, its optimised library not built."""
+        if not native_enabled():
+            return False
+        final = self.library_path(build)
+        return final is not None and not final.is_file()
+
+    def _optimise(self, build: str) -> None:
+        """The optimised build, in the background (at a low priority): registered in place of the
+        quick one when done; where it fails, the quick one keeps serving."""
+        try:
+            library = self.library(build, niceness=BACKGROUND_NICENESS)
+        except Exception:  # noqa: BLE001
+            return
+        register_program(str(library), self.dtype.str)
+
+    def prepare(self, build: str) -> None:
+        """Build (not load) what :meth:`address` will first register: the quick build where the
+        program is tiered, else the optimised one (:func:`prefetch`)."""
+        self.library(build, QUICK_NATIVE_LEVEL if self._tiered(build) else None)
+
+    def _stem(self, build: str) -> str:
+        return self.mode.replace(":", "_") + ("" if self.harmonics is None else f"_fourier{self.harmonics}") + f"_{build}"
+
+    def library_path(self, build: str, level: str | None = None) -> Path | None:
+        """Where the shared library of one of :data:`BUILDS` at optimisation ``level`` (default
+        :func:`jaxbody.cxx.compiler_flags`'s) is kept, built or not (``None``: no compiler)."""
+        return library_path(None, self._stem(build), compiler_flags(level), self.identity(build))
+
+    def library(self, build: str, level: str | None = None, niceness: int = 0) -> Path:
+        """The shared library of one of :data:`BUILDS` at optimisation ``level``, built where the
+        cache lacks it (not loaded)."""
+        return build_library(lambda: self.source.replace("@VECTOR_BYTES@", BUILDS[build]), self._stem(build),
+                             flags=compiler_flags(level), identity=self.identity(build), niceness=niceness)
 
     def build_for(self, batch: int) -> str:
         """Which of :data:`BUILDS` runs a call over ``batch`` states (:func:`build_for`), except
@@ -344,6 +393,17 @@ def compiled_kernel(tree, joints, with_external: bool, dtype, mode: str = "fd", 
         return _kernels[key]
 
 
+_optimising: list = []  # the futures of the optimised builds started in the background (Kernel.address)
+
+
+def wait_for_optimised_builds() -> None:
+    """Wait for the optimised builds running in the background (the interpreter waits for them
+    at exit anyway): from then on every program runs its optimised build."""
+    with _lock:
+        futures = list(_optimising)
+    concurrent.futures.wait(futures)
+
+
 # ----------------------------------------------------------------------------- builds ahead of use
 _pool: concurrent.futures.ThreadPoolExecutor | None = None
 
@@ -387,7 +447,7 @@ def prefetch(model: Model, modes: tuple[str, ...], harmonics: int | None = None,
 
         def run(key=key, build=build):
             # the code is generated here too, beside the caller's own work
-            compiled_kernel(*key).library(build)
+            compiled_kernel(*key).prepare(build)
         futures.append(_ahead((key, build), run))
     return futures
 

@@ -104,7 +104,10 @@ static Pool* pool() {
 // A traced call names its program by that key, not by its address: the address changes from
 // one process to the next, and a program in JAX's persistent compilation cache, made in
 // another process, must find this process's copy of the same program (and never another's).
+// A key is registered again when a program's optimised build replaces its quick first one:
+// the generation counts registrations, so that a thread's remembered program is looked up anew.
 static std::mutex registry_m;
+static std::atomic<uint64_t> registry_generation{0};
 static std::unordered_map<int64_t, Range>& registry() {
   static auto* r = new std::unordered_map<int64_t, Range>();
   return *r;
@@ -113,17 +116,20 @@ static std::unordered_map<int64_t, Range>& registry() {
 extern "C" void jaxbody_register(int64_t key, void* range) {
   std::lock_guard<std::mutex> lock(registry_m);
   registry()[key] = reinterpret_cast<Range>(range);
+  registry_generation.fetch_add(1, std::memory_order_release);
 }
 
 static Range lookup(int64_t key) {
   // the thread's last program first: a solver loop calls one program many times
   thread_local int64_t last_key = 0;
   thread_local Range last = nullptr;
-  if (key == last_key && last) return last;
+  thread_local uint64_t seen = 0;
+  const uint64_t generation = registry_generation.load(std::memory_order_acquire);
+  if (key == last_key && last && generation == seen) return last;
   std::lock_guard<std::mutex> lock(registry_m);
   auto it = registry().find(key);
   if (it == registry().end()) return nullptr;
-  last_key = key, last = it->second;
+  last_key = key, last = it->second, seen = generation;
   return last;
 }
 
