@@ -63,13 +63,16 @@ def _profile(jax):
     return events
 
 
-def case_setup(case: str, cassie: str | None = None):
+def case_setup(case: str, cassie: str | None = None, times: dict | None = None):
     """``(system, q0, v0, loss, arg)`` of a case (see the module docstring): the model or system
-    made, its initial state, and the loss whose gradient at ``arg`` is taken."""
+    made, its initial state, and the loss whose gradient at ``arg`` is taken. ``times`` receives
+    ``model_s`` (the MJCF import; the Maggi systems' construction) and ``scene_s`` (the scene's)."""
     import jax.numpy as jnp
 
     import jaxbody as jb
 
+    times = {} if times is None else times
+    t = time.perf_counter()
     if case in ("panda", "iiwa", "cassie"):
         path = {"panda": HERE.parent / "jaxbody" / "models" / "panda.xml", "iiwa": HERE / "models" / "iiwa_like.xml"}.get(case, cassie)
         import warnings
@@ -77,9 +80,12 @@ def case_setup(case: str, cassie: str | None = None):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             model = jb.from_mjcf(str(path))
+        times["model_s"] = time.perf_counter() - t
+        t = time.perf_counter()
         q0, v0 = model.qpos0 + (0.3 if case != "cassie" else 0.0), jnp.zeros(model.nv)
         if case == "cassie":
             system = jb.scene(model)
+            times["scene_s"] = time.perf_counter() - t
 
             def loss(s):  # with respect to a scale of gravity (any velocity would have to satisfy the loops)
                 sc = jb.scene(model, gravity=s * model.gravity)
@@ -93,6 +99,7 @@ def case_setup(case: str, cassie: str | None = None):
 
         gains = jnp.asarray([20.0, 2.0])
         system = jb.scene(model, actuation=(pd, gains))
+        times["scene_s"] = time.perf_counter() - t
 
         def loss(g):
             sc = jb.scene(model, actuation=(pd, g))
@@ -105,6 +112,7 @@ def case_setup(case: str, cassie: str | None = None):
         _, system, q0, v0 = disk_state("rolling")
     else:
         system, q0, v0 = four_bar()
+    times["model_s"], times["scene_s"] = time.perf_counter() - t, 0.0
 
     def loss(s):
         return jnp.sum(jb.simulate(system, q0, s * v0, 1.0).q[-1] ** 2)
@@ -146,9 +154,7 @@ def _worker(case: str, cassie: str | None) -> dict:
 
         build.build_library = timed
 
-    t = time.perf_counter()
-    system, q0, v0, loss, arg = case_setup(case, cassie)
-    out["model_s"] = time.perf_counter() - t
+    system, q0, v0, loss, arg = case_setup(case, cassie, out)
     out["scene"] = repr(system) if case in ("panda", "iiwa", "cassie") else type(system).__name__
     stage = {k: list(v) for k, v in events.items()}
     t = time.perf_counter()
@@ -261,11 +267,12 @@ def _write(record, args):
     rows = []
     for r in record["runs"]:
         if "error" in r:
-            rows.append((r["case"], r["tree"], r["phase"], "failed: " + r["error"].strip().splitlines()[-1][:80], "", "", "", "", "", "", ""))
+            rows.append((r["case"], r["tree"], r["phase"], "failed: " + r["error"].strip().splitlines()[-1][:80], "", "", "", "", "", "", "", ""))
             continue
         tgt = TARGETS[r["phase"]]
         mark = lambda k: f"{r[k]:.2f}" + ("" if r[k] <= tgt[k] else " ✗")  # noqa: E731
-        rows.append((r["case"], r["tree"], r["phase"], f"{r['import_s']:.2f}", mark("model_s"), mark("simulate_s"), mark("grad_s"),
+        rows.append((r["case"], r["tree"], r["phase"], f"{r['import_s']:.2f}", mark("model_s"),
+                     f"{r['scene_s']:.2f}" if "scene_s" in r else "", mark("simulate_s"), mark("grad_s"),
                      _compiles(r["profile_simulate"]), _compiles(r["profile_grad"]),
                      f"{r['native_build_simulate'][0] + r['native_build_grad'][0]:.1f} s ({r['native_build_simulate'][1] + r['native_build_grad'][1]})",
                      f"{r['process_s']:.1f}"))
@@ -275,13 +282,14 @@ def _write(record, args):
              "averages at start: " + ", ".join(str(m.get("load_average_start", "?")) for m in record["stamp"]["merged_from"]) + ".", ""]
             if "merged_from" in record["stamp"] else []),
           "Fresh processes with jaxbody's defaults; `cold`: an empty `$JAXBODY_CACHE_DIR`, `warm`: a second process "
-          "after it. Seconds; ✗ marks a missed target (cold: model ≤ 1, simulate ≤ 3, gradient ≤ 10; warm: ≤ 1 each). "
+          "after it. Seconds; `model`: the MJCF import (the Maggi systems: their construction), `scene`: `jb.scene` on the "
+          "imported model (no target); ✗ marks a missed target (cold: model ≤ 1, simulate ≤ 3, gradient ≤ 10; warm: ≤ 1 each). "
           "`compiled`: XLA programs compiled / their XLA compile seconds / persistent-cache hits (JAX's monitoring "
           "events; a hit is a program loaded instead of compiled). `native builds`: seconds in the C++ compiler (libraries "
           "looked up or built), summed over the threads that ran it: a solve's builds run beside each other and beside "
           "its trace, so the sum can exceed the wall time. `process`: the worker process's whole time, start to "
           "exit (its exit waits for the optimised compiles and builds still running in the background).", "",
-          markdown_table(["case", "jaxbody", "phase", "import jaxbody", "model", "first simulate", "first gradient",
+          markdown_table(["case", "jaxbody", "phase", "import jaxbody", "model", "scene", "first simulate", "first gradient",
                           "compiled (simulate)", "compiled (gradient)", "native builds", "process"], rows), ""]
     (args.out / f"{args.name}.md").write_text("\n".join(md))
     print("\n".join(md))

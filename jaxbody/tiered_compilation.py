@@ -62,6 +62,10 @@ MARK_SUFFIX = ".optimised"
 #: quick programs' runs and the caller's other compiles go first on a machine with few cores.
 BACKGROUND_NICENESS = 10
 
+# optimised compiles running at once: one per two cores, so that they leave the caller's own
+# work (a trace, the next quick compile) a core on the smallest machines
+_running = threading.BoundedSemaphore(max(1, (os.cpu_count() or 2) // 2))
+
 
 def enabled() -> bool:
     """Whether :func:`compile_tiered` compiles quickly first: switched on
@@ -101,11 +105,13 @@ def compile_tiered(lowered, path: Path | None, install: Callable, start: Callabl
     ``path``: the file the program is stored in (its marker goes beside it); ``install``: called
     from the background thread with the optimised executable once compiled; ``start``: runs a
     function in a background thread (``start(work, name)``) that the interpreter joins at exit.
-    Where tiering is off, or the marker says the optimised program is in JAX's cache, the
-    optimised program is compiled (loaded) here and ``install`` is not called."""
+    Where tiering is off (XLA's default options), or the marker says the optimised program is in
+    JAX's cache, the optimised program is compiled (loaded) here and ``install`` is not called."""
+    if not enabled():
+        return lowered.compile()
     marker = _marker(path)
-    if not enabled() or (marker is not None and marker.exists()):
-        return lowered.compile(compiler_options=OPTIMISED_OPTIONS)
+    if marker is not None and marker.exists():
+        return lowered.compile(compiler_options=OPTIMISED_OPTIONS)  # as the earlier process compiled it
     quick = lowered.compile(compiler_options=QUICK_OPTIONS)
 
     def work():
@@ -114,7 +120,8 @@ def compile_tiered(lowered, path: Path | None, install: Callable, start: Callabl
         except (AttributeError, OSError):  # not Linux: the thread keeps the caller's priority
             pass
         try:
-            optimised = lowered.compile(compiler_options=OPTIMISED_OPTIONS)
+            with _running:
+                optimised = lowered.compile(compiler_options=OPTIMISED_OPTIONS)
         except Exception:  # noqa: BLE001 (the quick program keeps running; it is the same program)
             return
         install(optimised)

@@ -24,7 +24,9 @@ set_default_xla_flags()  # before the backend starts
 # only optimised code has (a rounding error that needs the fused multiply-adds the optimiser
 # makes, two programs that round alike only with them), carry the marker
 # ``default_optimisation`` and run in a subprocess at the default levels (below). The native
-# kernel's C++ is built at -O0 likewise.
+# kernel's C++ is built at -O0 likewise. Both levels set here also turn jaxbody's tiered
+# compilation off (a quick first compile, its optimised one in the background): the suite's
+# programs are all quick ones; test_program_store.py and test_backends_native.py test tiering.
 # JAXBODY_TEST_XLA_OPTIMISATION=default runs the whole suite at the default level.
 OPTIMISATION_FLAG = "--xla_backend_optimization_level"
 # XLA also splits each program's machine code into parts compiled on parallel threads; the
