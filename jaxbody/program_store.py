@@ -301,12 +301,11 @@ def _differentiated(fn, args, name, primal: _Entry, leaves, treedef, static_part
         for thread in ahead.values():  # this mask's entry, being read by its thread: waited for, not read twice
             thread.join()
         entry = _entry(fn, args, name, leaves, treedef, static_part, mask, primal)
-        if entry is None:  # not stored: the same derivative, traced
+        if entry is None or not _registered(entry):  # not stored: the same derivative, traced
             _count("traced")
             reverse = _reverse_function(fn, static_part, treedef, len(outputs), in_mask, out_mask)
             return (tuple(jax.jit(reverse)(*full(values), *kept)),)
         _remember_mask(name, args, primal, in_mask, out_mask)
-        register(entry.notes)
         return (tuple(_run_entry(entry, [*full(values), *kept], _reverse_specs(leaves, outputs, out_mask))),)
 
     # symbolic zeros: the outputs no cotangent reaches are known to the reverse pass
@@ -397,9 +396,20 @@ def _reverse_ahead(fn, args, name, primal, leaves, treedef, static_part, in_mask
 
 def _compile_ahead(entry: "_Entry", specs) -> None:
     """Compile ``entry``'s program for inputs ``specs`` in this (background) thread."""
-    register(entry.notes)
-    if _executable(entry, specs)[1]:
+    if _registered(entry) and _executable(entry, specs)[1]:
         _count("ahead")
+
+
+def _registered(entry: "_Entry") -> bool:
+    """Register what ``entry``'s program calls (FFI targets, native programs) in this process;
+    ``False`` where a native library it calls is not built (removed from the cache, or an
+    optimised build an earlier process did not finish): the program is then traced again, which
+    builds it."""
+    try:
+        register(entry.notes)
+    except OSError:
+        return False
+    return True
 
 
 def _jitted(entry: "_Entry"):
@@ -543,9 +553,8 @@ def call(fn, args: tuple, name: str):
     if not _single_device(leaves):
         return _traced(fn, args)
     primal = _entry(fn, args, name, leaves, treedef, static_part, ())
-    if primal is None:
+    if primal is None or not _registered(primal):
         return _traced(fn, args)
-    register(primal.notes)
     if not any(mask):
         outputs = _run_entry(primal, list(leaves), _specs(leaves))
     else:

@@ -190,6 +190,29 @@ def test_damaged_entry_is_traced_and_stored_again(store):
     assert pickle.loads(path.read_bytes())["exported"] is not None
 
 
+def test_a_stored_program_whose_native_library_is_gone_is_traced_again(store, tmp_path, monkeypatch):
+    """A stored program that calls a native library no longer in the cache (removed, or an
+    optimised build an earlier process did not finish) is traced again, which builds it."""
+    monkeypatch.setenv("JAXBODY_CACHE_DIR", str(tmp_path / "cache"))
+    model, pd = _arm(gain_offset=float(np.random.default_rng().uniform(0.0, 1e-3)))
+    scene = jb.scene(model, actuation=(pd, jnp.asarray([8.0, 1.0])), kernel="native")
+    q0 = jnp.asarray([0.4, 0.1])
+    first = jb.simulate(scene, q0, jnp.zeros(2), 0.5)
+    assert first.kernel == "native"
+    program_store.forget()
+    programs = [p for p in (tmp_path / "cache" / "native").glob("*.so") if not p.name.startswith("handler")]
+    assert programs
+    for p in programs:
+        p.unlink()
+    before = program_store.counts()
+    second = jb.simulate(scene, q0, jnp.zeros(2), 0.5)
+    after = program_store.counts()
+    # (this process still holds the libraries it loaded: a later process builds them again,
+    # test_a_later_process_runs_the_stored_programs_without_tracing)
+    assert after["loaded"] - before["loaded"] == 2 and after["traced"] - before["traced"] == 2
+    np.testing.assert_allclose(second.q, first.q, rtol=0, atol=1e-14)
+
+
 def test_the_store_is_bounded_least_recently_used_first(store, monkeypatch):
     model, pd = _arm()
     q0 = jnp.asarray([0.4, 0.1])
@@ -354,7 +377,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp
 import jaxbody as jb
-from jaxbody import program_store, tiered_compilation
+from jaxbody import program_store
 
 sys.path.insert(0, sys.argv[2])
 from test_program_store import _arm  # the arm and PD law of the in-process tests
@@ -381,6 +404,7 @@ def test_a_later_process_runs_the_stored_programs_without_tracing(tmp_path):
     offset = str(np.random.default_rng().uniform(0.0, 1e-3))  # a program no earlier run stored
     env = {k: v for k, v in os.environ.items() if k != program_store.ENV_SWITCH}
     env.pop("JAXBODY_KERNEL", None)
+    env["JAXBODY_CACHE_DIR"] = str(tmp_path / "cache")  # its native libraries are removed below
 
     def run():
         done = subprocess.run([sys.executable, str(script), offset, str(pathlib.Path(__file__).parent)],
@@ -394,3 +418,12 @@ def test_a_later_process_runs_the_stored_programs_without_tracing(tmp_path):
     assert first["counts"]["stored"] == 3 and first["counts"]["loaded"] == 0
     assert second["counts"]["loaded"] == 3 and second["counts"]["stored"] == 0 and second["counts"]["traced"] == 0
     assert second["q"] == first["q"] and second["grad"] == first["grad"]
+    # a later process that finds the stored programs but not the native libraries they call
+    # (removed, or an optimised build that did not finish) traces the solves again, which builds them
+    programs = [p for p in (tmp_path / "cache" / "native").glob("*.so") if not p.name.startswith("handler")]
+    for p in programs:
+        p.unlink()
+    third = run()
+    assert third["counts"]["loaded"] == 3 and third["counts"]["traced"] >= 1  # the solve; then all is built
+    assert programs and all(p.is_file() for p in programs)
+    np.testing.assert_allclose(third["q"], first["q"], rtol=0, atol=1e-14)

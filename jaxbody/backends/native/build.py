@@ -146,26 +146,33 @@ _loaded: list = []  # libraries stay loaded for the life of the process (XLA hol
 _registered: dict = {}  # program key -> the library registered under it (its quick build, or itself)
 
 
-def register_program(library: str, dtype: str, quick: str | None = None) -> int:
+def register_program(library: str, dtype: str) -> int:
     """Load a kernel's built ``library`` (a path) and register its program with the handler of
     ``dtype`` (a NumPy dtype string); returns the key traced calls name it by. Idempotent. A
     stored program (:mod:`jaxbody.program_store`) replays this in a process that never traced it.
 
-    ``quick``: a build of the same program at a lower optimisation level, registered under
-    ``library``'s key while ``library`` is not built (its build in the background registers it
-    again when done: :meth:`Kernel.address`); an optimised program is never replaced by a quick one."""
+    Raises :class:`FileNotFoundError` where ``library`` is not built (removed from the cache, or
+    an optimised build that an earlier process did not finish): a stored program is then traced
+    again, which builds it."""
+    if not Path(library).is_file():
+        raise FileNotFoundError(f"the native program {library} is not built")
+    return _register(library, dtype, library)
+
+
+def _register(library: str, dtype: str, loaded: str) -> int:
+    """Register the program ``loaded`` (``library`` itself, or its quick build standing in for it
+    while ``library`` builds: :meth:`Kernel.address`) under ``library``'s key; an optimised
+    program is never replaced by a quick one."""
     target = handler_target(dtype)
     key = _program_key(Path(library))
-    loaded = library if quick is None or Path(library).is_file() else quick
     with _lock:
         if _registered.get(key) not in (loaded, library):
             lib = ctypes.cdll.LoadLibrary(loaded)
             _loaded.append(lib)
             _handlers[target].jaxbody_register(key, ctypes.cast(lib.jaxbody_range, ctypes.c_void_p).value)
             _registered[key] = loaded
-        # a stored program that calls it registers it again in a later process, the optimised
-        # build where that one is built by then
-        note_program(key, __name__, "register_program", library, np.dtype(dtype).str, *(() if loaded == library else (quick,)))
+        # a stored program that calls it registers it again in a later process
+        note_program(key, __name__, "register_program", library, np.dtype(dtype).str)
     return key
 
 
@@ -255,7 +262,7 @@ class Kernel:
                 final = self.library_path(build)
                 if self._tiered(build):
                     quick = str(self.library(build, QUICK_NATIVE_LEVEL))
-                    key = register_program(str(final), self.dtype.str, quick)
+                    key = _register(str(final), self.dtype.str, quick)
                     future = _builders().submit(self._optimise, build)
                     with _lock:
                         _optimising.append(future)
