@@ -19,7 +19,8 @@ The XLA program that calls the key does not change, and later processes find the
 library in the cache.
 
 A process that ends while an optimised compile or build runs waits for it at exit: that work
-is what makes the next process's first call fast.
+is what makes the next process's first call fast. Optimised compiles still queued then (they
+run one at a time per two cores) are left to the next process.
 
 The two programs compute the same operations; only the machine code differs, so their results
 can differ in the last bits (the optimiser fuses multiplies and adds): a chaotic trajectory
@@ -40,7 +41,7 @@ import jax
 from .cxx import LEVEL_SWITCH
 
 __all__ = ["BACKGROUND_NICENESS", "ENV_SWITCH", "MARK_SUFFIX", "OPTIMISED_OPTIONS", "QUICK_NATIVE_LEVEL",
-           "QUICK_OPTIONS", "compile_tiered", "enabled", "native_enabled"]
+           "QUICK_OPTIONS", "compile_tiered", "enabled", "native_enabled", "stop_queued"]
 
 #: The environment variable that turns tiered compilation off (``0``, ``off``, ``false``, ``no``).
 ENV_SWITCH = "JAXBODY_TIERED_COMPILE"
@@ -65,6 +66,13 @@ BACKGROUND_NICENESS = 10
 # optimised compiles running at once: one per two cores, so that they leave the caller's own
 # work (a trace, the next quick compile) a core on the smallest machines
 _running = threading.BoundedSemaphore(max(1, (os.cpu_count() or 2) // 2))
+_stopping = threading.Event()  # set at exit: optimised compiles not started yet are left out
+
+
+def stop_queued() -> None:
+    """Leave out the optimised compiles that have not started (at exit: the process then waits
+    only for those running; the next process compiles the others)."""
+    _stopping.set()
 
 
 def enabled() -> bool:
@@ -119,11 +127,17 @@ def compile_tiered(lowered, path: Path | None, install: Callable, start: Callabl
             os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), BACKGROUND_NICENESS)
         except (AttributeError, OSError):  # not Linux: the thread keeps the caller's priority
             pass
+        while not _running.acquire(timeout=0.05):  # its turn, unless the process ends first
+            if _stopping.is_set():
+                return
         try:
-            with _running:
-                optimised = lowered.compile(compiler_options=OPTIMISED_OPTIONS)
+            if _stopping.is_set():
+                return
+            optimised = lowered.compile(compiler_options=OPTIMISED_OPTIONS)
         except Exception:  # noqa: BLE001 (the quick program keeps running; it is the same program)
             return
+        finally:
+            _running.release()
         install(optimised)
         if marker is not None:
             try:

@@ -116,33 +116,28 @@ def tiered(monkeypatch):
 
 
 def test_a_first_call_runs_a_quick_compile_then_the_optimised_one(store, tiered):
+    # (a derivative's program is compiled by the same function as the solve's: not repeated here)
     model, pd = _arm(gain_offset=float(np.random.default_rng().uniform(0.0, 1e-3)))  # a program no earlier test compiled
     q0 = jnp.asarray([0.4, 0.1])
-    gains = jnp.asarray([8.0, 1.0])
-    scene = jb.scene(model, actuation=(pd, gains))
+    scene = jb.scene(model, actuation=(pd, jnp.asarray([8.0, 1.0])))
     before = program_store.counts()
     quick = jb.simulate(scene, q0, jnp.zeros(2), 0.5, n_save=11)
-    quick_grad = jax.grad(_loss(model, pd, q0))(gains)
     program_store.wait()
-    # the solve, its saved quantities and its derivative, each compiled again optimised in the
-    # background, marked as such beside the stored program
+    # the solve and its saved quantities, each compiled again optimised in the background,
+    # marked as such beside the stored program
     first = program_store.counts()
-    assert first["optimised"] - before["optimised"] == 3
-    assert len(list(store.glob("*.pickle.optimised"))) == 3
+    assert first["optimised"] - before["optimised"] == 2
+    assert len(list(store.glob("*.pickle.optimised"))) == 2
     # the calls after it run the optimised programs: the same numbers to rounding
     optimised = jb.simulate(scene, q0, jnp.zeros(2), 0.5, n_save=11)
-    optimised_grad = jax.grad(_loss(model, pd, q0))(gains)
     np.testing.assert_allclose(optimised.q, quick.q, rtol=0, atol=1e-13)
-    np.testing.assert_allclose(optimised_grad, quick_grad, rtol=1e-11)
     # a later process (this one's memory forgotten) finds the marks and compiles, that is loads
     # from JAX's cache, the optimised programs at once: nothing is compiled twice
     program_store.forget()
     again = jb.simulate(scene, q0, jnp.zeros(2), 0.5, n_save=11)
-    again_grad = jax.grad(_loss(model, pd, q0))(gains)
     program_store.wait()
     assert program_store.counts()["optimised"] == first["optimised"]
     np.testing.assert_array_equal(again.q, optimised.q)
-    np.testing.assert_array_equal(again_grad, optimised_grad)
 
 
 def test_tiered_compilation_is_off_where_switched_off_or_the_level_is_the_callers(tiered, monkeypatch):
