@@ -44,7 +44,7 @@ from .ffi_targets import needed, register, targets
 from .program_fingerprint import TRUSTED, Undescribable, describe, input_aval, is_input, jax_settings
 from .program_fingerprint import fingerprint as _fingerprint
 from .tiered_compilation import ENV_SWITCH as TIERED_SWITCH
-from .tiered_compilation import MARK_SUFFIX, compile_tiered, stop_queued
+from .tiered_compilation import MARK_SUFFIX, compile_tiered
 
 __all__ = ["ENV_SWITCH", "MAX_BYTES", "TRUSTED", "Undescribable", "call", "call_then", "counts", "describe", "enabled",
            "fingerprint", "forget", "store_dir", "wait"]
@@ -626,16 +626,11 @@ def _start(work, name: str) -> threading.Thread:
 
 
 @atexit.register
-def _at_exit() -> None:
-    # optimised compiles not started yet are left to the next process; the rest is waited for
-    stop_queued()
-    wait()
-
-
 def wait() -> None:
     """Wait for this process's background work: programs prepared ahead (:func:`call_then`),
     reverse programs compiled ahead, optimised compiles replacing quick ones
-    (:mod:`jaxbody.tiered_compilation`). The interpreter waits at exit for what has started."""
+    (:mod:`jaxbody.tiered_compilation`). The interpreter waits for it at exit: the optimised
+    programs are what makes the next process's first calls fast."""
     while True:
         with _lock:
             running = [t for t in _threads if t.is_alive()]

@@ -1,15 +1,16 @@
 """First calls compiled quickly, their optimised programs compiled in the background.
 
 About half of XLA's CPU compile of a solve is LLVM optimising the machine code, and a first
-simulation waits for all of it (a rolling disk's first ``simulate``: 2.2 s of XLA compile
-with the optimiser off, 3.9 s with it on, measured by ``benchmarks/first_call.py``). Where
-this machine has not compiled a stored program (:mod:`jaxbody.program_store`) optimised
-before, :func:`compile_tiered` compiles it with the optimiser off (:data:`QUICK_OPTIONS`: XLA's
-backend optimisation level 0, one code-generation part) and runs that; a background thread at
-low priority compiles the optimised program, which replaces the quick one for every later call
-and goes into JAX's persistent compilation cache. A marker file beside the stored program then
-tells later processes to load the optimised program at once. The quick program runs slower (up
-to about twice: it serves the first calls only).
+simulation waits for all of it (a rolling disk's first ``simulate`` in a fresh process took
+4.75 s with every program compiled quickly, 7.14 s optimised:
+``benchmarks/tiered_compilation.py``). Where this machine has not compiled a stored program
+(:mod:`jaxbody.program_store`) optimised before, :func:`compile_tiered` compiles it with the
+optimiser off (:data:`QUICK_OPTIONS`: XLA's backend optimisation level 0, one code-generation
+part) and runs that; a background thread at low priority compiles the optimised program,
+which replaces the quick one for every later call and goes into JAX's persistent compilation
+cache. A marker file beside the stored program then tells later processes to load the
+optimised program at once. The quick programs ran 1.5-2x slower than the optimised ones on the
+same benchmark's cases: they serve the first calls only.
 
 The native kernel's C++ is tiered alike (:func:`native_enabled`): a program whose ``-O2``
 library is not in the cache is built at ``-O0`` first (about 10x faster to build, several times
@@ -19,8 +20,9 @@ The XLA program that calls the key does not change, and later processes find the
 library in the cache.
 
 A process that ends while an optimised compile or build runs waits for it at exit: that work
-is what makes the next process's first call fast. Optimised compiles still queued then (they
-run one at a time per two cores) are left to the next process.
+is what makes the next process's first call fast (a first gradient's optimised compiles can
+make that wait longer than the gradient itself: the `process` column of
+``benchmarks/first_call.py``).
 
 The two programs compute the same operations; only the machine code differs, so their results
 can differ in the last bits (the optimiser fuses multiplies and adds): a chaotic trajectory
@@ -41,7 +43,7 @@ import jax
 from .cxx import LEVEL_SWITCH
 
 __all__ = ["BACKGROUND_NICENESS", "ENV_SWITCH", "MARK_SUFFIX", "OPTIMISED_OPTIONS", "QUICK_NATIVE_LEVEL",
-           "QUICK_OPTIONS", "compile_tiered", "enabled", "native_enabled", "stop_queued"]
+           "QUICK_OPTIONS", "compile_tiered", "enabled", "native_enabled"]
 
 #: The environment variable that turns tiered compilation off (``0``, ``off``, ``false``, ``no``).
 ENV_SWITCH = "JAXBODY_TIERED_COMPILE"
@@ -66,13 +68,6 @@ BACKGROUND_NICENESS = 10
 # optimised compiles running at once: one per two cores, so that they leave the caller's own
 # work (a trace, the next quick compile) a core on the smallest machines
 _running = threading.BoundedSemaphore(max(1, (os.cpu_count() or 2) // 2))
-_stopping = threading.Event()  # set at exit: optimised compiles not started yet are left out
-
-
-def stop_queued() -> None:
-    """Leave out the optimised compiles that have not started (at exit: the process then waits
-    only for those running; the next process compiles the others)."""
-    _stopping.set()
 
 
 def enabled() -> bool:
@@ -127,17 +122,11 @@ def compile_tiered(lowered, path: Path | None, install: Callable, start: Callabl
             os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), BACKGROUND_NICENESS)
         except (AttributeError, OSError):  # not Linux: the thread keeps the caller's priority
             pass
-        while not _running.acquire(timeout=0.05):  # its turn, unless the process ends first
-            if _stopping.is_set():
-                return
         try:
-            if _stopping.is_set():
-                return
-            optimised = lowered.compile(compiler_options=OPTIMISED_OPTIONS)
+            with _running:
+                optimised = lowered.compile(compiler_options=OPTIMISED_OPTIONS)
         except Exception:  # noqa: BLE001 (the quick program keeps running; it is the same program)
             return
-        finally:
-            _running.release()
         install(optimised)
         if marker is not None:
             try:

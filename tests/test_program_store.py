@@ -185,29 +185,6 @@ def test_damaged_entry_is_traced_and_stored_again(store):
     assert pickle.loads(path.read_bytes())["exported"] is not None
 
 
-def test_a_stored_program_whose_native_library_is_gone_is_traced_again(store, tmp_path, monkeypatch):
-    """A stored program that calls a native library no longer in the cache (removed, or an
-    optimised build an earlier process did not finish) is traced again, which builds it."""
-    monkeypatch.setenv("JAXBODY_CACHE_DIR", str(tmp_path / "cache"))
-    model, pd = _arm(gain_offset=float(np.random.default_rng().uniform(0.0, 1e-3)))
-    scene = jb.scene(model, actuation=(pd, jnp.asarray([8.0, 1.0])), kernel="native")
-    q0 = jnp.asarray([0.4, 0.1])
-    first = jb.simulate(scene, q0, jnp.zeros(2), 0.5)
-    assert first.kernel == "native"
-    program_store.forget()
-    programs = [p for p in (tmp_path / "cache" / "native").glob("*.so") if not p.name.startswith("handler")]
-    assert programs
-    for p in programs:
-        p.unlink()
-    before = program_store.counts()
-    second = jb.simulate(scene, q0, jnp.zeros(2), 0.5)
-    after = program_store.counts()
-    # (this process still holds the libraries it loaded: a later process builds them again,
-    # test_a_later_process_runs_the_stored_programs_without_tracing)
-    assert after["loaded"] - before["loaded"] == 2 and after["traced"] - before["traced"] == 2
-    np.testing.assert_allclose(second.q, first.q, rtol=0, atol=1e-14)
-
-
 def test_the_store_is_bounded_least_recently_used_first(store, monkeypatch):
     model, pd = _arm()
     q0 = jnp.asarray([0.4, 0.1])

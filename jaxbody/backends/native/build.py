@@ -151,9 +151,14 @@ def register_program(library: str, dtype: str) -> int:
     ``dtype`` (a NumPy dtype string); returns the key traced calls name it by. Idempotent. A
     stored program (:mod:`jaxbody.program_store`) replays this in a process that never traced it.
 
-    Raises :class:`FileNotFoundError` where ``library`` is not built (removed from the cache, or
-    an optimised build that an earlier process did not finish): a stored program is then traced
-    again, which builds it."""
+    Raises :class:`FileNotFoundError` where ``library`` is neither registered in this process
+    (its quick build stands in for it while it builds: :meth:`Kernel.address`) nor built (removed
+    from the cache, or an optimised build an earlier process did not finish): a stored program
+    is then traced again, which builds it."""
+    key = _program_key(Path(library))
+    with _lock:
+        if key in _registered:
+            return key
     if not Path(library).is_file():
         raise FileNotFoundError(f"the native program {library} is not built")
     return _register(library, dtype, library)
