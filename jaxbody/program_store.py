@@ -141,9 +141,6 @@ class _Entry:
     outputs: object  # the outputs' skeleton
     notes: tuple  # the registrations the program needs (ffi_targets.needed)
     path: Path | None = None  # the file it is stored in (beside it: tiered_compilation's marker)
-    # the jitted function of the input arrays it was exported from, its trace cached: in the
-    # process that traced it, its derivative is traced from that trace (_reverse_function)
-    traced: object = dataclasses.field(default=None, compare=False, repr=False)
 
 
 _entries: dict = {}  # in this process: (function, static structure, input shapes) -> _Entry or None
@@ -199,7 +196,7 @@ def _export(fn, args, leaves, treedef):
     # check (which reuses this trace); which of them it calls is read from its text
     program.trace(*specs)
     exported = _exported(program, specs)
-    return _Entry(exported, skeleton[-1], _needed(exported), traced=program)
+    return _Entry(exported, skeleton[-1], _needed(exported))
 
 
 def _exported(program, specs):
@@ -220,7 +217,7 @@ def _specs(leaves) -> list:
     return [jax.ShapeDtypeStruct(shape, dtype, weak_type=weak) for shape, dtype, weak in map(input_aval, leaves)]
 
 
-def _reverse_function(fn, static_part, treedef, n_out, in_mask, out_mask, traced=None):
+def _reverse_function(fn, static_part, treedef, n_out, in_mask, out_mask):
     """The reverse derivative of ``fn`` as a function of its input arrays and the cotangents
     of the outputs ``out_mask`` marks (of ``n_out``), returning the cotangents of the inputs
     ``in_mask`` marks: ``jax.vjp`` of ``fn``, whose forward pass it runs again (the forward pass
@@ -236,12 +233,7 @@ def _reverse_function(fn, static_part, treedef, n_out, in_mask, out_mask, traced
             it = iter(diff)
             full = [next(it) if m else a for a, m in zip(arrays, in_mask)]
             out: list = []
-            if traced is not None:
-                # the forward pass as the trace the primal program was exported from: JAX
-                # differentiates its equations without running jaxbody's and diffrax's Python again
-                out = list(traced(*full))
-            else:
-                _skeleton(fn(*eqx.combine(jax.tree.unflatten(treedef, full), static_part)), out)
+            _skeleton(fn(*eqx.combine(jax.tree.unflatten(treedef, full), static_part)), out)
             assert len(out) == n_out
             return [o for o, keep in zip(out, out_mask) if keep]
 
@@ -261,8 +253,7 @@ def _export_derivative(fn, args, leaves, treedef, primal: _Entry, mask) -> _Entr
     """The program of :func:`_reverse_function` (``mask``: the input and output masks)."""
     in_mask, out_mask = mask
     outputs = primal.exported.out_avals
-    reverse = _reverse_function(fn, eqx.partition(args, is_input)[1], treedef, len(outputs), in_mask, out_mask,
-                                primal.traced)
+    reverse = _reverse_function(fn, eqx.partition(args, is_input)[1], treedef, len(outputs), in_mask, out_mask)
     specs = _reverse_specs(leaves, outputs, out_mask)
     exported = _exported(jax.jit(reverse), specs)
     return _Entry(exported, None, _needed(exported))
