@@ -34,7 +34,8 @@ def store(tmp_path, monkeypatch):
 
 
 def _primal_files(store):
-    return [p for p in store.glob("simulate-*.pickle") if not p.name.startswith("simulate-reverse-")]
+    return [p for p in store.glob("simulate-*.pickle")
+            if not p.name.startswith(("simulate-reverse-", "simulate-forward-"))]
 
 
 def _arm(gain_offset=0.0):
@@ -52,10 +53,12 @@ def _arm(gain_offset=0.0):
     return model, pd
 
 
-def _loss(model, pd, q0):
+def _loss(model, pd, q0, adjoint=None):
+    """The loss of the arm's final state (``adjoint``: ``simulate``'s; the default lets the
+    store differentiate in forward mode, an explicit one keeps reverse mode)."""
     def loss(gains):
         sc = jb.scene(model, actuation=(pd, gains))
-        return jnp.sum(jb.simulate(sc, q0, jnp.zeros(2), 0.5, n_save=11).q[-1] ** 2)
+        return jnp.sum(jb.simulate(sc, q0, jnp.zeros(2), 0.5, n_save=11, adjoint=adjoint).q[-1] ** 2)
     return loss
 
 
@@ -71,9 +74,11 @@ def test_stored_program_gives_the_traced_results_and_gradients(store, monkeypatc
     first = program_store.counts()
     assert first["stored"] - before["stored"] == 2 and first["ahead"] - before["ahead"] == 1
     assert first["loaded"] == before["loaded"]
-    grad = jax.grad(_loss(model, pd, q0))(gains)
+    # reverse mode, as the adjoint asked for (the same primal program as the default adjoint's)
+    grad = jax.grad(_loss(model, pd, q0, "checkpoint"))(gains)
     after = program_store.counts()
     assert after["stored"] - before["stored"] == 3  # and the solve's derivative
+    assert after["forward"] == before["forward"]
     assert len(_primal_files(store)) == 1 and len(list(store.glob("saved-*.pickle"))) == 1
     assert len(list(store.glob("simulate-reverse-*.pickle"))) == 1
     # the reverse program's output mask is remembered for the next forward pass
@@ -82,7 +87,7 @@ def test_stored_program_gives_the_traced_results_and_gradients(store, monkeypatc
     # program and the reverse program read and compiled in background threads
     program_store.forget()
     again = jb.simulate(scene, q0, jnp.zeros(2), 0.5, n_save=11)
-    grad_again = jax.grad(_loss(model, pd, q0))(gains)
+    grad_again = jax.grad(_loss(model, pd, q0, "checkpoint"))(gains)
     assert program_store.counts()["loaded"] - after["loaded"] == 3
     assert program_store.counts()["ahead"] - after["ahead"] == 2
     np.testing.assert_array_equal(again.q, sol.q)
@@ -91,7 +96,7 @@ def test_stored_program_gives_the_traced_results_and_gradients(store, monkeypatc
     # and what tracing gives, the store switched off
     monkeypatch.setenv(program_store.ENV_SWITCH, "0")
     traced = jb.simulate(scene, q0, jnp.zeros(2), 0.5, n_save=11)
-    grad_traced = jax.grad(_loss(model, pd, q0))(gains)
+    grad_traced = jax.grad(_loss(model, pd, q0, "checkpoint"))(gains)
     np.testing.assert_allclose(traced.q, sol.q, rtol=0, atol=1e-14)
     np.testing.assert_allclose(grad_traced, grad, rtol=1e-12, atol=1e-14)
     for name in ("t", "v", "energy", "t_final", "q_final", "v_final", "energy_drift"):
@@ -103,6 +108,43 @@ def test_stored_program_gives_the_traced_results_and_gradients(store, monkeypatc
     loss, h = _loss(model, pd, q0), 1e-6
     fd = [(loss(gains.at[i].add(h)) - loss(gains.at[i].add(-h))) / (2 * h) for i in range(2)]
     np.testing.assert_allclose(grad, fd, rtol=1e-6)
+
+
+def test_a_derivative_with_respect_to_a_few_scalars_is_taken_in_forward_mode(store):
+    model, pd = _arm()
+    q0 = jnp.asarray([0.4, 0.1])
+    gains = jnp.asarray([8.0, 1.0])
+    reverse = jax.grad(_loss(model, pd, q0, "checkpoint"))(gains)
+    before = program_store.counts()
+    grad = jax.grad(_loss(model, pd, q0))(gains)
+    after = program_store.counts()
+    # one program, the outputs and their Jacobians with respect to the two gains; no reverse
+    # program for it
+    assert after["forward"] - before["forward"] == 1 and after["stored"] - before["stored"] == 1
+    assert len(list(store.glob("simulate-forward-*.pickle"))) == 1
+    assert len(list(store.glob("simulate-reverse-*.pickle"))) == 1  # the checkpointed loss's alone
+    np.testing.assert_allclose(grad, reverse, rtol=1e-12, atol=1e-14)
+    # and against central differences of the solve
+    loss, h = _loss(model, pd, q0), 1e-6
+    fd = [(loss(gains.at[i].add(h)) - loss(gains.at[i].add(-h))) / (2 * h) for i in range(2)]
+    np.testing.assert_allclose(grad, fd, rtol=1e-6)
+    # read back from the store: the same numbers, and a loss of more than the final state
+    # (the energies of the saved states) reaches every output's Jacobian
+    program_store.forget()
+    np.testing.assert_array_equal(jax.grad(_loss(model, pd, q0))(gains), grad)
+    assert program_store.counts()["loaded"] - after["loaded"] >= 1
+
+    def energy_loss(gains, adjoint=None):
+        sol = jb.simulate(jb.scene(model, actuation=(pd, gains)), q0, jnp.zeros(2), 0.5, n_save=11, adjoint=adjoint)
+        return jnp.sum(sol.v ** 2) + jnp.sum(sol.energy) + sol.t_final
+
+    np.testing.assert_allclose(jax.grad(energy_loss)(gains), jax.grad(energy_loss)(gains, "checkpoint"),
+                               rtol=1e-12, atol=1e-14)
+    # past FORWARD_MAX_INPUTS scalars, reverse mode: gains padded with ones the law never reads
+    wide = jnp.concatenate([gains, jnp.ones(program_store.FORWARD_MAX_INPUTS)])
+    counted = program_store.counts()["forward"]
+    np.testing.assert_allclose(jax.grad(_loss(model, pd, q0))(wide)[:2], grad, rtol=1e-12, atol=1e-14)
+    assert program_store.counts()["forward"] == counted
 
 
 @pytest.fixture

@@ -82,6 +82,8 @@ def simulate_scene(
     solver_obj, controller = choose_solver(solver, scene, q0.dtype, rtol, atol, dt0, controller)
     # the budget first: the default adjoint's checkpoints are planned over it
     max_steps = step_bound(controller, t0, t1, dt0, max_steps, q0.dtype)
+    # no adjoint asked for: the program store may take a derivative in forward mode instead
+    adjoint_chosen = adjoint is not None
     adjoint = choose_adjoint(adjoint, max_steps, q0.size + v0.size, q0.dtype.itemsize)
     if dt0 is not None:
         dt0 = jnp.asarray(dt0, q0.dtype)
@@ -109,6 +111,7 @@ def simulate_scene(
         solver_obj = Guarded(solver_obj.solver, solver_obj.project, record=True)
     # constraints that choose their partition automatically re-partition during the solve
     # (partition_solver wraps the guard); the stage loop is chosen from the outermost wrapper
+    guarded = solver_obj
     solver_obj = for_adjoint(partition_solver(solver_obj, scene, adjoint), adjoint, max_steps)
 
     constrained = scene_constraints(scene) if check_constraints else None
@@ -172,10 +175,14 @@ def simulate_scene(
     prefetch_solve(scene, y0, solver_obj, controller, saveat, adjoint, meter, event, dense, slots)
     # the layout and the native switch are computed out here: static arguments of the compiled solve
     # a program traced in an earlier process is run as stored (no trace: program_store)
+    native = native_solve_enabled()
     integrated, saved = program_store.call_then(
         _integrate, (scene, y0, t0, t1, valid, solver_obj, controller, dt0, saveat, max_steps, adjoint, meter, event,
-                     dense, slots, native_solve_enabled()), "simulate",
-        _saved_quantities, lambda out: (scene, y0, t0, out[0], out[1], tuple(work_names)), "saved")
+                     dense, slots, native), "simulate",
+        _saved_quantities, lambda out: (scene, y0, t0, out[0], out[1], tuple(work_names)), "saved",
+        first_forward_args=None if adjoint_chosen else _forward_variant(
+            scene, y0, t0, t1, valid, guarded, solver_obj, controller, dt0, saveat, max_steps, adjoint, meter, event,
+            dense, slots, native))
     sol = _solution(integrated, saved, solution_layout(scene))
     yf = integrated[3]
     w_final = yf[2][-1] if len(yf) == 3 else None
@@ -191,6 +198,24 @@ def simulate_scene(
         else:
             sol = raise_on_failure(sol, scene, t0, t1)
     return sol, w_final
+
+
+def _forward_variant(scene, y0, t0, t1, valid, guarded, solver, controller, dt0, saveat, max_steps, adjoint, meter,
+                     event, dense, slots, native):
+    """The arguments of :func:`_integrate` under diffrax's forward-mode adjoint: the program
+    store differentiates a solve through them in forward mode when a derivative is taken with
+    respect to a few scalars (:data:`jaxbody.program_store.FORWARD_MAX_INPUTS`), a smaller program to
+    compile than the reverse sweep through checkpoints. ``None`` where the solve is one native
+    call differentiated by its own native reverse sweep (a derivative with respect to the
+    initial state alone), which is faster than either."""
+    scene_differentiated = any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(scene))
+    if native and not scene_differentiated and native_solve_applies(scene, y0, solver, controller, saveat, adjoint,
+                                                                    meter, event, dense, slots):
+        return None
+    forward = diffrax.ForwardMode()
+    solver = for_adjoint(partition_solver(guarded, scene, forward), forward, max_steps)
+    return (scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps, forward, meter, event, dense, slots,
+            native)
 
 
 def make_event(event, dtype):
