@@ -110,41 +110,40 @@ def test_stored_program_gives_the_traced_results_and_gradients(store, monkeypatc
     np.testing.assert_allclose(grad, fd, rtol=1e-6)
 
 
-def test_a_derivative_with_respect_to_a_few_scalars_is_taken_in_forward_mode(store):
+def test_a_derivative_with_respect_to_a_few_scalars_is_taken_in_forward_mode(store, monkeypatch):
     model, pd = _arm()
     q0 = jnp.asarray([0.4, 0.1])
     gains = jnp.asarray([8.0, 1.0])
-    reverse = jax.grad(_loss(model, pd, q0, "checkpoint"))(gains)
+    loss = _loss(model, pd, q0)
     before = program_store.counts()
-    grad = jax.grad(_loss(model, pd, q0))(gains)
+    grad = jax.grad(loss)(gains)
     after = program_store.counts()
-    # one program, the outputs and their Jacobians with respect to the two gains; no reverse
-    # program for it
-    assert after["forward"] - before["forward"] == 1 and after["stored"] - before["stored"] == 1
-    assert len(list(store.glob("simulate-forward-*.pickle"))) == 1
-    assert len(list(store.glob("simulate-reverse-*.pickle"))) == 1  # the checkpointed loss's alone
-    np.testing.assert_allclose(grad, reverse, rtol=1e-12, atol=1e-14)
-    # and against central differences of the solve
-    loss, h = _loss(model, pd, q0), 1e-6
-    fd = [(loss(gains.at[i].add(h)) - loss(gains.at[i].add(-h))) / (2 * h) for i in range(2)]
-    np.testing.assert_allclose(grad, fd, rtol=1e-6)
-    # read back from the store: the same numbers, and a loss of more than the final state
-    # (the energies of the saved states) reaches every output's Jacobian
+    # one program, the outputs and their Jacobians with respect to the two gains; no primal
+    # program traced for it, no reverse one
+    assert after["forward"] - before["forward"] == 1 and after["stored"] - before["stored"] == 2  # and "saved"
+    assert len(list(store.glob("simulate-forward-*.pickle"))) == 1 and not _primal_files(store)
+    # past FORWARD_MAX_INPUTS scalars, reverse mode: the same derivative
+    with monkeypatch.context() as patch:
+        patch.setattr(program_store, "FORWARD_MAX_INPUTS", 1)
+        np.testing.assert_allclose(jax.grad(loss)(gains), grad, rtol=1e-12, atol=1e-14)
+    assert program_store.counts()["forward"] == after["forward"]
+    assert len(list(store.glob("simulate-reverse-*.pickle"))) == 1
+    # read back from the store: the same numbers
     program_store.forget()
-    np.testing.assert_array_equal(jax.grad(_loss(model, pd, q0))(gains), grad)
+    np.testing.assert_array_equal(jax.grad(loss)(gains), grad)
     assert program_store.counts()["loaded"] - after["loaded"] >= 1
+    # against central differences of the solve, for a loss of more outputs than the final state
+    # (the velocities and energies of the saved states, and the end time): each output's
+    # Jacobian is contracted with its cotangent
 
-    def energy_loss(gains, adjoint=None):
-        sol = jb.simulate(jb.scene(model, actuation=(pd, gains)), q0, jnp.zeros(2), 0.5, n_save=11, adjoint=adjoint)
-        return jnp.sum(sol.v ** 2) + jnp.sum(sol.energy) + sol.t_final
+    def wide_loss(gains):
+        sol = jb.simulate(jb.scene(model, actuation=(pd, gains)), q0, jnp.zeros(2), 0.5, n_save=11)
+        return jnp.sum(sol.q[-1] ** 2) + jnp.sum(sol.v ** 2) + 0.1 * jnp.sum(sol.energy) + sol.t_final
 
-    np.testing.assert_allclose(jax.grad(energy_loss)(gains), jax.grad(energy_loss)(gains, "checkpoint"),
-                               rtol=1e-12, atol=1e-14)
-    # past FORWARD_MAX_INPUTS scalars, reverse mode: gains padded with ones the law never reads
-    wide = jnp.concatenate([gains, jnp.ones(program_store.FORWARD_MAX_INPUTS)])
-    counted = program_store.counts()["forward"]
-    np.testing.assert_allclose(jax.grad(_loss(model, pd, q0))(wide)[:2], grad, rtol=1e-12, atol=1e-14)
-    assert program_store.counts()["forward"] == counted
+    h = 1e-6
+    for f in (loss, wide_loss):
+        fd = [(f(gains.at[i].add(h)) - f(gains.at[i].add(-h))) / (2 * h) for i in range(2)]
+        np.testing.assert_allclose(jax.grad(f)(gains), fd, rtol=1e-6)
 
 
 @pytest.fixture
