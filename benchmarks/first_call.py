@@ -176,8 +176,10 @@ def _worker(case: str, cassie: str | None) -> dict:
     return out
 
 
-def _run(case, cassie, tree_path, cache_dir, phase, log: pathlib.Path | None = None) -> dict:
+def _run(case, cassie, tree_path, cache_dir, phase, log: pathlib.Path | None = None, xla_flags: str | None = None) -> dict:
     env = {k: v for k, v in os.environ.items() if k not in ("JAX_COMPILATION_CACHE_DIR", "JAXBODY_KERNEL", "JAXBODY_JAX_CACHE")}
+    if xla_flags is not None:
+        env["XLA_FLAGS"] = xla_flags
     env["JAXBODY_CACHE_DIR"] = str(cache_dir)
     if tree_path is not None:
         env["PYTHONPATH"] = os.pathsep.join([str(tree_path), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
@@ -211,6 +213,7 @@ def main(argv=None):
     p.add_argument("--name", default="first_call")
     p.add_argument("--out", type=pathlib.Path, default=RESULTS)
     p.add_argument("--repeats", type=int, default=1)
+    p.add_argument("--xla-flags", help="XLA_FLAGS of the workers (default: this process's)")
     p.add_argument("--cases", default="panda,iiwa,disk,four-bar", help=f"comma-separated of {CASES}")
     p.add_argument("--cassie", help="MJCF of a Cassie-like model (floating base, ball joints, <connect> loops)")
     p.add_argument("--log-compiles", action="store_true",
@@ -242,6 +245,8 @@ def main(argv=None):
     record = {"stamp": stamp(), "targets": TARGETS, "runs": []}
     if baseline:
         record["baseline"] = baseline
+    if args.xla_flags is not None:
+        record["stamp"]["xla_flags"] = f"{args.xla_flags} (the workers', --xla-flags)"
     args.out.mkdir(parents=True, exist_ok=True)
     for _ in range(args.repeats):
         for case in cases:
@@ -251,7 +256,7 @@ def main(argv=None):
                     for phase in phases:
                         log = (args.out / f"{args.name}_{case}_{'this' if path is None else 'baseline'}_{phase}.log"
                                if args.log_compiles else None)
-                        rec = dict(_run(case, args.cassie, path, cache, phase, log), tree=tree)
+                        rec = dict(_run(case, args.cassie, path, cache, phase, log, args.xla_flags), tree=tree)
                         record["runs"].append(rec)
                         print({k: v for k, v in rec.items() if not k.startswith("profile") and k not in ("q_final", "grad")}, flush=True)
                         # kept as it goes: a long run stopped early leaves what it measured

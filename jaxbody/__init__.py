@@ -5,14 +5,22 @@ quasi-coordinates (Byachkov). One engine with one state: a :class:`Model` (or a 
 system), the state pytree :class:`Data` computed once by :func:`compute_data`, and kernels
 ``jb.kernels.*(model, data, ...)``; the functions ``jb.mass_matrix(model, q)`` ... are those
 kernels behind one input check (:func:`check_inputs`). Conventions: ``docs/conventions.md``.
-The library changes one global JAX setting on import: it turns JAX's persistent compilation
+The library changes two global settings on import: it turns JAX's persistent compilation
 cache on in its own cache directory, unless ``JAXBODY_JAX_CACHE=0`` or the user configured one
-(:mod:`jaxbody.compilation_cache`). Enable float64 with
+(:mod:`jaxbody.compilation_cache`), and, with jaxlib 0.10, it adds
+``--xla_cpu_use_fusion_emitters=false`` to ``XLA_FLAGS`` unless they set that flag (XLA CPU's
+fusion emitters compile jaxbody's programs slowly; effective only if JAX has not computed
+anything yet). Enable float64 with
 ``jax.config.update("jax_enable_x64", True)`` for accuracy work.
 """
 
-# first: JAX decides at the first compilation whether its persistent cache is used
-from . import compilation_cache as compilation_cache
+# first: XLA reads its flags when JAX's backend starts, and JAX decides at the first
+# compilation whether its persistent cache is used
+from ._xla import set_default_xla_flags as _set_default_xla_flags
+
+_set_default_xla_flags()
+
+from . import compilation_cache as compilation_cache  # noqa: E402
 
 compilation_cache.enable()
 

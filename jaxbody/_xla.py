@@ -32,10 +32,15 @@ def default_xla_flags() -> str:
 
 
 def set_default_xla_flags() -> None:
-    """Set ``XLA_FLAGS`` to :func:`default_xla_flags` unless the caller set it (before JAX starts)."""
+    """Add :func:`default_xla_flags` to ``XLA_FLAGS`` unless the caller's flags set that flag
+    themselves (either way). XLA reads ``XLA_FLAGS`` when JAX's backend starts, so this acts
+    only before the first computation: ``import jaxbody`` calls it. Its effect on first calls:
+    ``benchmarks/first_call.py --xla-flags=--xla_cpu_use_fusion_emitters=true`` against the
+    defaults."""
     flags = default_xla_flags()
-    if flags:
-        os.environ.setdefault("XLA_FLAGS", flags)
+    current = os.environ.get("XLA_FLAGS", "")
+    if flags and flags.split("=")[0] not in current:
+        os.environ["XLA_FLAGS"] = f"{current} {flags}".strip()
 
 
 if __name__ == "__main__":

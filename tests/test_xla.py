@@ -32,14 +32,31 @@ def test_no_jaxlib_gives_no_flags(monkeypatch):
     assert _xla.jaxlib_version() == () and _xla.default_xla_flags() == ""
 
 
-def test_a_callers_flags_are_kept(monkeypatch):
+def test_a_callers_flags_are_kept_and_the_fusion_flag_added_unless_they_set_it(monkeypatch):
     monkeypatch.setattr(importlib.metadata, "version", lambda name: "0.10.2")
     monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
     _xla.set_default_xla_flags()
-    assert os.environ["XLA_FLAGS"] == "--xla_force_host_platform_device_count=2"
+    assert os.environ["XLA_FLAGS"] == f"--xla_force_host_platform_device_count=2 {_xla.CPU_FUSION_FLAG}"
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=true")  # the caller's own choice
+    _xla.set_default_xla_flags()
+    assert os.environ["XLA_FLAGS"] == "--xla_cpu_use_fusion_emitters=true"
     monkeypatch.delenv("XLA_FLAGS")
     _xla.set_default_xla_flags()
     assert os.environ["XLA_FLAGS"] == _xla.CPU_FUSION_FLAG
+    monkeypatch.setattr(importlib.metadata, "version", lambda name: "0.11.2")  # a jaxlib without the flag
+    monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
+    _xla.set_default_xla_flags()
+    assert os.environ["XLA_FLAGS"] == "--xla_force_host_platform_device_count=2"
+
+
+def test_importing_jaxbody_sets_the_flag_before_jax_starts():
+    script = "import os, jaxbody, jax; jax.numpy.zeros(1).block_until_ready(); print(os.environ.get('XLA_FLAGS', ''))"
+    for given, expected in (("", _xla.default_xla_flags()),
+                            ("--xla_cpu_use_fusion_emitters=true", "--xla_cpu_use_fusion_emitters=true")):
+        env = dict(os.environ, XLA_FLAGS=given) if given else {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+        out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True, timeout=120,
+                             env=env, cwd=REPO).stdout.strip()
+        assert out == expected
 
 
 def test_script_prints_the_flags_for_this_environment():
