@@ -22,8 +22,8 @@ differentiable variant of the function and at most :data:`FORWARD_MAX_INPUTS` in
 differentiated, in forward mode: one stored program computes the outputs and their Jacobians
 with respect to those scalars, and the reverse pass contracts the cotangents with them. A
 forward-mode program is smaller than a reverse one (no second sweep, no checkpoints): a first
-gradient of a rolling disk's simulation with respect to one scalar compiled in 9.1 s instead
-of 17.0 s (``benchmarks/first_call.py`` measures it).
+gradient of the rolling disk's simulation took 7.8 s instead of 21.6 s, of a 7-DoF arm's with
+respect to up to four gains 5.3-6.7 s instead of 9.0-9.8 s (``benchmarks/forward_derivative.py``).
 
 :func:`call_then` runs two functions, the second on the outputs of the first, and prepares the
 second's program (found, or traced and stored, then compiled) in a background thread while the
@@ -35,7 +35,6 @@ The store is bounded (:data:`MAX_BYTES`; the least recently used programs go fir
 
 import atexit
 import dataclasses
-import importlib
 import json
 import os
 import pickle
@@ -53,11 +52,12 @@ from .compilation_cache import cache_root
 from .ffi_targets import needed, register, targets
 from .program_fingerprint import TRUSTED, Undescribable, describe, input_aval, is_input, jax_settings
 from .program_fingerprint import fingerprint as _fingerprint
+from .program_outputs import arrays_in, rebuild, skeleton
 from .tiered_compilation import ENV_SWITCH as TIERED_SWITCH
 from .tiered_compilation import MARK_SUFFIX, compile_tiered
 
-__all__ = ["ENV_SWITCH", "FORWARD_MAX_INPUTS", "MAX_BYTES", "TRUSTED", "Undescribable", "call", "call_then", "counts", "describe", "enabled",
-           "fingerprint", "forget", "store_dir", "wait"]
+__all__ = ["ENV_SWITCH", "FORWARD_MAX_INPUTS", "MAX_BYTES", "TRUSTED", "Undescribable", "call", "call_then", "counts",
+           "describe", "enabled", "fingerprint", "forget", "store_dir", "wait"]
 
 #: The environment variable that turns the store off (``0``, ``off``, ``false``, ``no``).
 ENV_SWITCH = "JAXBODY_PROGRAM_STORE"
@@ -65,8 +65,10 @@ ENV_SWITCH = "JAXBODY_PROGRAM_STORE"
 #: The most differentiated input scalars for which :func:`call` takes a derivative in forward
 #: mode (where the caller offers a forward-mode variant): forward mode pushes one tangent per
 #: scalar through every step, reverse mode one sweep back whatever their number, so past a few
-#: scalars the reverse sweep is cheaper to run.
-FORWARD_MAX_INPUTS = 8
+#: scalars the reverse sweep is cheaper to run. Measured on later runs of a 7-DoF arm's
+#: gradient: forward mode 0.62-0.78x reverse's time for 1-4 scalars, 1.23x for 8 and 1.87x for
+#: 14; the rolling disk's 5 (its initial velocities), 0.85x (``benchmarks/forward_derivative.py``).
+FORWARD_MAX_INPUTS = 5
 
 #: Size bound of the store (bytes): past it, the least recently used programs are removed.
 MAX_BYTES = 512 * 1024**2
@@ -93,58 +95,6 @@ def fingerprint(name: str, args, differentiated: tuple = ()) -> str:
 def store_dir() -> Path:
     """Where programs are stored: ``<cache>/programs`` (:func:`jaxbody.compilation_cache.cache_root`)."""
     return cache_root() / "programs"
-
-
-# ---------------------------------------------------------------------------------------------
-# the outputs: arrays and the structure around them, stored beside the program
-
-
-def _skeleton(x, leaves: list):
-    """``x`` as plain data that can be stored, with its arrays appended to ``leaves``."""
-    if isinstance(x, jax.Array | np.ndarray):
-        leaves.append(x)
-        return ("array",)
-    if x is None or isinstance(x, (bool, int, float, str)):
-        return ("value", x)
-    if isinstance(x, type):
-        return ("class", x.__module__, x.__qualname__)
-    if isinstance(x, (tuple, list)) and not hasattr(x, "_fields"):
-        return (type(x).__name__, [_skeleton(v, leaves) for v in x])
-    if isinstance(x, dict):
-        return ("dict", [(k, _skeleton(v, leaves)) for k, v in x.items()])
-    if dataclasses.is_dataclass(x):
-        fields = [(f.name, _skeleton(getattr(x, f.name), leaves)) for f in dataclasses.fields(x) if hasattr(x, f.name)]
-        return ("dataclass", type(x).__module__, type(x).__qualname__, fields)
-    raise Undescribable(f"an output of type {type(x).__qualname__}")
-
-
-def _resolve(module: str, qualname: str):
-    obj = importlib.import_module(module)
-    for part in qualname.split("."):
-        obj = getattr(obj, part)
-    return obj
-
-
-def _rebuild(skeleton, leaves):
-    """The inverse of :func:`_skeleton`: ``leaves`` an iterator over the arrays."""
-    kind = skeleton[0]
-    if kind == "array":
-        return next(leaves)
-    if kind == "value":
-        return skeleton[1]
-    if kind == "class":
-        return _resolve(skeleton[1], skeleton[2])
-    if kind in ("tuple", "list"):
-        items = [_rebuild(v, leaves) for v in skeleton[1]]
-        return tuple(items) if kind == "tuple" else items
-    if kind == "dict":
-        return {k: _rebuild(v, leaves) for k, v in skeleton[1]}
-    cls = _resolve(skeleton[1], skeleton[2])
-    # the fields as they were (their converters already ran when the output was made)
-    obj = object.__new__(cls)
-    for name, value in skeleton[3]:
-        object.__setattr__(obj, name, _rebuild(value, leaves))
-    return obj
 
 
 # ---------------------------------------------------------------------------------------------
@@ -198,12 +148,12 @@ def forget() -> None:
 
 def _export(fn, args, leaves, treedef):
     """Trace ``fn(*args)`` once, as a program of the input arrays ``leaves``."""
-    skeleton = []
+    structures = []
 
     def flat(*arrays):
         out = fn(*eqx.combine(jax.tree.unflatten(treedef, arrays), static_part))
         outputs: list = []
-        skeleton.append(_skeleton(out, outputs))
+        structures.append(skeleton(out, outputs))
         return outputs
 
     static_part = eqx.partition(args, is_input)[1]
@@ -213,7 +163,7 @@ def _export(fn, args, leaves, treedef):
     # check (which reuses this trace); which of them it calls is read from its text
     program.trace(*specs)
     exported = _exported(program, specs)
-    return _Entry(exported, skeleton[-1], _needed(exported))
+    return _Entry(exported, structures[-1], _needed(exported))
 
 
 def _exported(program, specs):
@@ -250,7 +200,7 @@ def _reverse_function(fn, static_part, treedef, n_out, in_mask, out_mask):
             it = iter(diff)
             full = [next(it) if m else a for a, m in zip(arrays, in_mask)]
             out: list = []
-            _skeleton(fn(*eqx.combine(jax.tree.unflatten(treedef, full), static_part)), out)
+            skeleton(fn(*eqx.combine(jax.tree.unflatten(treedef, full), static_part)), out)
             assert len(out) == n_out
             return [o for o, keep in zip(out, out_mask) if keep]
 
@@ -321,26 +271,12 @@ def _differentiated(fn, args, name, primal: _Entry, leaves, treedef, static_part
     return run(tuple(x for x, m in zip(leaves, in_mask) if m))
 
 
-def _arrays_in(skeleton) -> int:
-    """How many arrays the outputs of ``skeleton`` (:func:`_skeleton`) hold."""
-    kind = skeleton[0]
-    if kind == "array":
-        return 1
-    if kind in ("tuple", "list"):
-        return sum(map(_arrays_in, skeleton[1]))
-    if kind == "dict":
-        return sum(_arrays_in(v) for _, v in skeleton[1])
-    if kind == "dataclass":
-        return sum(_arrays_in(v) for _, v in skeleton[3])
-    return 0
-
-
-def _forward_function(fn, static_part, treedef, in_mask, skeleton: list):
+def _forward_function(fn, static_part, treedef, in_mask, structures: list):
     """``fn`` as a function of its input arrays returning its outputs followed by the Jacobian
     of each inexact output with respect to the inputs ``in_mask`` marks, raveled into one vector
     of ``k`` scalars (shape ``output.shape + (k,)``): ``jax.jacfwd``, one tangent per scalar
-    pushed through the whole program beside its values. The outputs' skeleton is appended to
-    ``skeleton``."""
+    pushed through the whole program beside its values. The outputs' skeleton
+    (:func:`jaxbody.program_outputs.skeleton`) is appended to ``structures``."""
 
     def forward(*arrays):
         diff = [a for a, m in zip(arrays, in_mask) if m]
@@ -350,7 +286,7 @@ def _forward_function(fn, static_part, treedef, in_mask, skeleton: list):
             it = iter(unravel(x))
             full = [next(it) if m else a for a, m in zip(arrays, in_mask)]
             out: list = []
-            skeleton.append(_skeleton(fn(*eqx.combine(jax.tree.unflatten(treedef, full), static_part)), out))
+            structures.append(skeleton(fn(*eqx.combine(jax.tree.unflatten(treedef, full), static_part)), out))
             # integer outputs (counts, result codes) have no derivative: carried beside
             return [o for o in out if jnp.issubdtype(o.dtype, jnp.inexact)], out
 
@@ -362,13 +298,13 @@ def _forward_function(fn, static_part, treedef, in_mask, skeleton: list):
 
 def _export_forward(fn, args, leaves, treedef, in_mask) -> _Entry:
     """The program of :func:`_forward_function`; its entry's skeleton is the outputs'."""
-    skeleton: list = []
-    forward = _forward_function(fn, eqx.partition(args, is_input)[1], treedef, in_mask, skeleton)
+    structures: list = []
+    forward = _forward_function(fn, eqx.partition(args, is_input)[1], treedef, in_mask, structures)
     program = jax.jit(forward)
     specs = _specs(leaves)
     program.trace(*specs)  # registers the FFI targets it calls before the export checks them
     exported = _exported(program, specs)
-    return _Entry(exported, skeleton[-1], _needed(exported))
+    return _Entry(exported, structures[-1], _needed(exported))
 
 
 def _forward_parts(leaves, in_mask, forward_args) -> tuple | None:
@@ -409,7 +345,7 @@ def _forward_differentiated(fn, forward_args, name, leaves, parts, in_mask):
 
         def program(inputs):
             return traced(*inputs)
-    n_out = _arrays_in(entry.outputs)
+    n_out = arrays_in(entry.outputs)
     outputs = entry.exported.out_avals[:n_out]
     inexact = [np.issubdtype(a.dtype, np.inexact) for a in outputs]
     constants = [None if m else x for x, m in zip(leaves, in_mask)]
@@ -685,8 +621,8 @@ def call(fn, args: tuple, name: str, forward_args: tuple | None = None):
     if parts is not None:
         found = _forward_differentiated(fn, forward_args, name, leaves, parts, mask)
         if found is not None:
-            outputs, skeleton = found
-            return _rebuild(skeleton, iter(outputs))
+            outputs, structure = found
+            return rebuild(structure, iter(outputs))
     primal = _entry(fn, args, name, leaves, treedef, static_part, ())
     if primal is None or not _registered(primal):
         return _traced(fn, args)
@@ -694,7 +630,7 @@ def call(fn, args: tuple, name: str, forward_args: tuple | None = None):
         outputs = _run_entry(primal, list(leaves), _specs(leaves))
     else:
         outputs = _differentiated(fn, args, name, primal, leaves, treedef, static_part, mask)
-    return _rebuild(primal.outputs, iter(outputs))
+    return rebuild(primal.outputs, iter(outputs))
 
 
 def call_then(first, first_args: tuple, first_name: str, second, second_args, second_name: str,
@@ -725,7 +661,7 @@ def call_then(first, first_args: tuple, first_name: str, second, second_args, se
         if entry is not None:
             shapes = iter([jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=a.weak_type)
                            for a in entry.exported.out_avals])
-            ahead = _ahead(second, second_args(_rebuild(entry.outputs, shapes)), second_name)
+            ahead = _ahead(second, second_args(rebuild(entry.outputs, shapes)), second_name)
     a = call(first, first_args, first_name, first_forward_args)
     if ahead is not None:
         ahead.join()  # its failures are left to the call below, which makes the program itself
