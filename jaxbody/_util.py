@@ -12,6 +12,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .tiered_compilation import QUICK_OPTIONS
+from .tiered_compilation import enabled as tiered_enabled
+
 __all__ = ["compiled_when_eager", "int_tuple", "index", "check_shape", "skew", "cross2", "perp2", "rot2", "plane3", "axial3", "quat_to_matrix", "quat_multiply"]
 
 
@@ -140,7 +143,7 @@ def concrete_primals(tree):
     return jax.tree.unflatten(treedef, values)
 
 
-def compiled_when_eager(method):
+def compiled_when_eager(method=None, *, quick: bool = False):
     """A function or method that runs as one compiled program when called on concrete values (in a
     notebook, a test, a failure diagnosis), and as plain code when traced (a vector field inside
     :func:`jaxbody.simulate`, ``jit``, ``vmap``, ``grad``), where the caller's program holds it.
@@ -152,8 +155,18 @@ def compiled_when_eager(method):
     and input shapes (:func:`equinox.filter_jit`: the scene's arrays are inputs, so new
     parameter values reuse it). Python floats among the arguments (a time ``t``) become arrays
     of the state's dtype, so a new value does not compile a new program; other non-array
-    arguments (flags, names, integers) are static."""
-    program = eqx.filter_jit(method)
+    arguments (flags, names, integers) are static.
+
+    ``quick=True`` (``@compiled_when_eager(quick=True)``): for a check that runs about once per
+    system (at its construction), the program is compiled at XLA's backend optimisation level
+    0 where tiered compilation is on (:func:`jaxbody.tiered_compilation.enabled`): the four-bar
+    linkage's construction-time checks compile in about a third of the time, and a program
+    that runs once has no later calls for the optimiser to speed up."""
+    if method is None:
+        return functools.partial(compiled_when_eager, quick=quick)
+    programs = {False: eqx.filter_jit(method)}
+    if quick:
+        programs[True] = eqx.filter_jit(method, compiler_options=QUICK_OPTIONS)
 
     @functools.wraps(method)
     def run(*args, **kwargs):
@@ -167,6 +180,7 @@ def compiled_when_eager(method):
             # a Python float would be a static argument, compiled into the program
             return jnp.asarray(x, dtype) if type(x) is float else x
 
+        program = programs[quick and tiered_enabled()]
         return program(*(as_array(a) for a in args), **{k: as_array(a) for k, a in kwargs.items()})
 
     return run

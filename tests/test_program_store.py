@@ -189,6 +189,34 @@ def test_tiered_compilation_is_off_where_switched_off_or_the_level_is_the_caller
     assert not tiered_compilation.enabled()
 
 
+def test_a_check_run_once_compiles_quickly_where_tiering_is_on(tiered, monkeypatch):
+    # compiled_when_eager(quick=True): the program of a construction-time check is compiled at
+    # XLA's level 0 where tiering is on, with the defaults where it is off; the same values
+    from jaxbody import _util
+
+    requested = []
+    real = _util.eqx.filter_jit
+
+    def recording(fn, **kwargs):
+        program = real(fn, **kwargs)
+
+        def run(*args):
+            requested.append(kwargs.get("compiler_options"))
+            return program(*args)
+
+        return run
+
+    monkeypatch.setattr(_util.eqx, "filter_jit", recording)
+    check = _util.compiled_when_eager(quick=True)(lambda q: jnp.sin(q) @ q)
+    plain = _util.compiled_when_eager(lambda q: jnp.sin(q) @ q)
+    q = jnp.linspace(0.0, 1.0, 5)
+    quick_value = check(q)
+    plain(q)
+    monkeypatch.setenv(tiered_compilation.ENV_SWITCH, "off")
+    np.testing.assert_allclose(check(q), quick_value, rtol=1e-15)
+    assert requested == [tiered_compilation.QUICK_OPTIONS, None, None]
+
+
 def test_traced_calls_are_left_to_the_callers_program(store):
     model, pd = _arm()
     q0 = jnp.asarray([0.4, 0.1])

@@ -144,7 +144,7 @@ class ConstrainedSystem(eqx.Module):
             else jnp.reshape(b, (c.size,)) for c, b in zip(self.constraints, closed)
         ])
 
-    @compiled_when_eager
+    @compiled_when_eager(quick=True)  # a check: evaluated eagerly about once per system
     def position_residual(self, t, q) -> Array:
         """``φ(t, q)`` of the holonomic rows, zero on non-holonomic rows (s,)."""
         parts = []

@@ -8,7 +8,6 @@ checks or projects an initial state; :func:`project_velocities` (kinetic metric)
 
 from collections.abc import Callable, Sequence
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -17,6 +16,7 @@ from jax import lax
 
 from .. import linalg
 from .._types import ArrayLike
+from .._util import compiled_when_eager
 from ..kinematics import integrate_qpos
 from ..model import Model
 from .constrained import ConstrainedSystem
@@ -41,8 +41,9 @@ def check_constraints(system: ConstrainedSystem, q, x=None, t=0.0, *, rtol: floa
 
 
 # G and f* at the reference state from one compiled program: evaluated op by op, every
-# differentiated call of the kinematics would compile a program of its own
-@eqx.filter_jit
+# differentiated call of the kinematics would compile a program of its own; compiled quickly,
+# since it runs about once per system
+@compiled_when_eager(quick=True)
 def _jacobian_and_residual(system, t, q, x):
     return system.constraint_jacobian(t, q, x), system.constraint_residual(t, q, x)
 

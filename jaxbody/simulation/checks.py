@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import maggi
-from .._util import is_concrete
+from .._util import compiled_when_eager, is_concrete
 from ..effects import JointDampers, JointSprings
 from ..model import Model
 from ..scene import Scene
@@ -240,8 +240,9 @@ def concrete_constraint_check(cs, t0, q0, v0, project_initial):
     return q0, v0p.astype(v0.dtype), (correction.astype(v0.dtype) if project_initial else None)
 
 
-# compiled once per constraint structure: the eager check runs it on every concrete solve
-@eqx.filter_jit
+# compiled once per constraint structure, quickly (a check: nothing for the optimiser to
+# speed up): the eager check runs it on every concrete solve
+@compiled_when_eager(quick=True)
 def _residual(cs, t, q, v):
     return cs.position_residual(t, q), cs.constraint_residual(t, q, v)
 
