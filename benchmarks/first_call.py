@@ -1,6 +1,7 @@
 """What a new user waits for: the first model import, simulation and gradient, cold and warm.
 
     python benchmarks/first_call.py [--name NAME] [--cases C] [--repeats N] [--baseline DIR] [--cassie PATH]
+        [--xla-flags FLAGS] [--baseline-xla-flags FLAGS]
     python benchmarks/first_call.py --merge A.json B.json ... [--name NAME]   # one record from several runs
 
 Each case runs in fresh processes, as a user's script would, with jaxbody's defaults (no
@@ -15,7 +16,9 @@ where a target is missed; ``--log-compiles`` also keeps each worker's log of eve
 traced and compiled, with the reason of each persistent-cache miss. ``--baseline DIR`` times another checkout (e.g. ``git archive`` of an
 older commit) in the same run, alternating with this tree (``--trees baseline`` times it alone,
 ``--baseline-phases cold`` only its empty-cache phase). Runs split over several processes
-(each its own ``--name``) are joined by ``--merge``. Writes ``NAME.json`` and
+(each its own ``--name``) are joined by ``--merge``. ``--xla-flags`` sets the workers'
+``XLA_FLAGS``, ``--baseline-xla-flags`` the baseline's alone (a copy of this tree as the
+baseline then times a flag A/B). Writes ``NAME.json`` and
 ``NAME.md`` (default ``first_call``) to ``--out`` (default ``benchmarks/results``).
 
 Targets (docs/performance.md, "First calls and compile time"): with an empty cache, import ≤ 1 s, first
@@ -214,6 +217,7 @@ def main(argv=None):
     p.add_argument("--out", type=pathlib.Path, default=RESULTS)
     p.add_argument("--repeats", type=int, default=1)
     p.add_argument("--xla-flags", help="XLA_FLAGS of the workers (default: this process's)")
+    p.add_argument("--baseline-xla-flags", help="XLA_FLAGS of the baseline checkout's workers (default: --xla-flags)")
     p.add_argument("--cases", default="panda,iiwa,disk,four-bar", help=f"comma-separated of {CASES}")
     p.add_argument("--cassie", help="MJCF of a Cassie-like model (floating base, ball joints, <connect> loops)")
     p.add_argument("--log-compiles", action="store_true",
@@ -247,6 +251,9 @@ def main(argv=None):
         record["baseline"] = baseline
     if args.xla_flags is not None:
         record["stamp"]["xla_flags"] = f"{args.xla_flags} (the workers', --xla-flags)"
+    if args.baseline_xla_flags is not None:
+        record["stamp"]["xla_flags"] = (f"{record['stamp'].get('xla_flags', '(unset)')}; the baseline's workers: "
+                                        f"{args.baseline_xla_flags} (--baseline-xla-flags)")
     args.out.mkdir(parents=True, exist_ok=True)
     for _ in range(args.repeats):
         for case in cases:
@@ -256,7 +263,9 @@ def main(argv=None):
                     for phase in phases:
                         log = (args.out / f"{args.name}_{case}_{'this' if path is None else 'baseline'}_{phase}.log"
                                if args.log_compiles else None)
-                        rec = dict(_run(case, args.cassie, path, cache, phase, log, args.xla_flags), tree=tree)
+                        flags = args.baseline_xla_flags if path is not None and args.baseline_xla_flags is not None \
+                            else args.xla_flags
+                        rec = dict(_run(case, args.cassie, path, cache, phase, log, flags), tree=tree)
                         record["runs"].append(rec)
                         print({k: v for k, v in rec.items() if not k.startswith("profile") and k not in ("q_final", "grad")}, flush=True)
                         # kept as it goes: a long run stopped early leaves what it measured
