@@ -50,6 +50,7 @@ __all__ = [
     "stamp",
     "stamp_markdown",
     "time_per_call",
+    "write_record",
     "run_worker",
     "checkouts",
     "alternate",
@@ -396,6 +397,16 @@ DOUBLE_PENDULUM_MJCF = """<mujoco model="double_pendulum">
     </body>
   </worldbody>
 </mujoco>"""
+
+
+def write_record(name: str, record: dict, title: str, text: str, headers, rows, out: pathlib.Path = RESULTS) -> str:
+    """Write ``out/name.json`` (the record) and ``out/name.md``: ``title``, the record's stamp,
+    ``text`` and one table; returns the markdown."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{name}.json").write_text(json.dumps(record, indent=1))
+    md = "\n".join([f"# {title}", "", stamp_markdown(record["stamp"]), "", text, "", markdown_table(headers, rows), ""])
+    (out / f"{name}.md").write_text(md)
+    return md
 
 
 def shared_legend(fig, axes, n_used: int, **legend):

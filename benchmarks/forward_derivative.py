@@ -33,9 +33,17 @@ import tempfile
 import time
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-from _common import RESULTS, load_average, markdown_table, stamp, stamp_markdown  # noqa: E402
+from _common import RESULTS, load_average, stamp, write_record  # noqa: E402
 
 HERE = pathlib.Path(__file__).resolve().parent
+
+# the record's columns and the paragraph above its table
+COLUMNS = ["case", "k", "first forward (s)", "first reverse (s)", "later forward (ms)", "later reverse (ms)", "ratio",
+           "agree"]
+LEGEND = ("Fresh processes, empty caches, jaxbody's defaults except the threshold of forward mode, set so that one mode "
+          "serves throughout. First gradient in seconds (trace, compile, run); later gradients: the median of {calls}, "
+          "in milliseconds; `ratio`: forward / reverse of the later ones; `agree`: the largest relative difference of "
+          "the two gradients.")
 
 
 def _loss(case: str, size: int):
@@ -91,7 +99,9 @@ def _worker(case: str, size: int, mode: str, calls: int) -> dict:
 
 
 def _run(case: str, size: int, mode: str, calls: int) -> dict:
-    env = {k: v for k, v in os.environ.items() if k not in ("JAX_COMPILATION_CACHE_DIR", "JAXBODY_KERNEL", "JAXBODY_JAX_CACHE")}
+    # jaxbody's defaults: the program store on (it takes the derivatives this compares)
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("JAX_COMPILATION_CACHE_DIR", "JAXBODY_KERNEL", "JAXBODY_JAX_CACHE", "JAXBODY_PROGRAM_STORE")}
     with tempfile.TemporaryDirectory(prefix="jaxbody-forward-") as cache:
         env["JAXBODY_CACHE_DIR"] = cache
         cmd = [sys.executable, str(pathlib.Path(__file__).resolve()), "--worker", case, "--size", str(size), "--mode", mode,
@@ -107,6 +117,7 @@ def main(argv=None):
     p.add_argument("--name", default="forward_derivative")
     p.add_argument("--sizes", default="1,2,4,8,14", help="numbers of parameters of the arm's law")
     p.add_argument("--calls", type=int, default=5, help="later gradients timed (their median)")
+    p.add_argument("--out", type=pathlib.Path, default=RESULTS, help="where the record is written")
     p.add_argument("--worker", help=argparse.SUPPRESS)
     p.add_argument("--size", type=int, default=1, help=argparse.SUPPRESS)
     p.add_argument("--mode", help=argparse.SUPPRESS)
@@ -115,14 +126,12 @@ def main(argv=None):
         print(json.dumps(_worker(args.worker, args.size, args.mode, args.calls)))
         return
     record = {"stamp": stamp(), "calls": args.calls, "runs": []}
-    cases = [("arm", int(k)) for k in args.sizes.split(",")] + [("disk", 5)]
+    cases = [("arm", int(k)) for k in args.sizes.split(",") if k] + [("disk", 5)]
     for case, size in cases:
         for mode in ("forward", "reverse"):  # alternating: the two modes see the same load
             record["runs"].append(_run(case, size, mode, args.calls))
             print(record["runs"][-1], flush=True)
     record["stamp"]["load_average_end"] = load_average()
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / f"{args.name}.json").write_text(json.dumps(record, indent=1))
     by = {(r["case"], r["size"], r["mode"]): r for r in record["runs"]}
     rows = []
     for case, size in cases:
@@ -130,15 +139,8 @@ def main(argv=None):
         agree = max(abs(a - b) / max(abs(b), 1e-300) for a, b in zip(f["grad"], r["grad"]))
         rows.append((case, size, f"{f['first_grad_s']:.2f}", f"{r['first_grad_s']:.2f}", f"{1e3 * f['grad_s']:.1f}",
                      f"{1e3 * r['grad_s']:.1f}", f"{f['grad_s'] / r['grad_s']:.2f}", f"{agree:.1e}"))
-    md = ["# Forward against reverse mode: a gradient with respect to k scalars", "", stamp_markdown(record["stamp"]), "",
-          "Fresh processes, empty caches, jaxbody's defaults except the threshold of forward mode, set so that one mode "
-          "serves throughout. First gradient in seconds (trace, compile, run); later gradients: the median of "
-          f"{args.calls}, in milliseconds; `ratio`: forward / reverse of the later ones; `agree`: the largest relative "
-          "difference of the two gradients.", "",
-          markdown_table(["case", "k", "first forward (s)", "first reverse (s)", "later forward (ms)", "later reverse (ms)",
-                          "ratio", "agree"], rows), ""]
-    (RESULTS / f"{args.name}.md").write_text("\n".join(md))
-    print("\n".join(md))
+    print(write_record(args.name, record, "Forward against reverse mode: a gradient with respect to k scalars",
+                       LEGEND.format(calls=args.calls), COLUMNS, rows, args.out))
 
 
 if __name__ == "__main__":

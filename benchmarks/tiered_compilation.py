@@ -25,7 +25,7 @@ import tempfile
 import time
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-from _common import RESULTS, load_average, markdown_table, stamp, stamp_markdown  # noqa: E402
+from _common import load_average, stamp, write_record  # noqa: E402
 
 HERE = pathlib.Path(__file__).resolve().parent
 CASES = ("panda", "iiwa", "disk", "four-bar")
@@ -86,8 +86,6 @@ def main(argv=None):
             record["runs"].append(_run(case, kind, args.calls))
             print(record["runs"][-1], flush=True)
     record["stamp"]["load_average_end"] = load_average()
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / f"{args.name}.json").write_text(json.dumps(record, indent=1))
     rows = []
     by = {(r["case"], r["kind"]): r for r in record["runs"]}
     for case in args.cases.split(","):
@@ -96,15 +94,13 @@ def main(argv=None):
                      f"{1e3 * q['simulate_s']:.1f}", f"{1e3 * o['simulate_s']:.1f}", f"{q['simulate_s'] / o['simulate_s']:.2f}",
                      f"{q['first_grad_s']:.2f}", f"{o['first_grad_s']:.2f}",
                      f"{1e3 * q['grad_s']:.1f}", f"{1e3 * o['grad_s']:.1f}", f"{q['grad_s'] / o['grad_s']:.2f}"))
-    md = ["# Quick against optimised programs: first calls and later runs", "", stamp_markdown(record["stamp"]), "",
-          "Fresh processes, empty caches, tiering off: `quick` compiles every XLA program at backend optimisation "
-          "level 0 in one code-generation part and builds every native library at -O0; `optimised` uses the "
-          f"defaults. First calls in seconds; later calls: the median of {args.calls}, in milliseconds; `ratio`: "
-          "quick / optimised.", "",
-          markdown_table(["case", "first simulate quick", "optimised", "later simulate quick (ms)", "optimised (ms)", "ratio",
-                          "first gradient quick", "optimised", "later gradient quick (ms)", "optimised (ms)", "ratio"], rows), ""]
-    (RESULTS / f"{args.name}.md").write_text("\n".join(md))
-    print("\n".join(md))
+    text = ("Fresh processes, empty caches, tiering off: `quick` compiles every XLA program at backend optimisation "
+            "level 0 in one code-generation part and builds every native library at -O0; `optimised` uses the "
+            f"defaults. First calls in seconds; later calls: the median of {args.calls}, in milliseconds; `ratio`: "
+            "quick / optimised.")
+    print(write_record(args.name, record, "Quick against optimised programs: first calls and later runs", text,
+                       ["case", "first simulate quick", "optimised", "later simulate quick (ms)", "optimised (ms)", "ratio",
+                        "first gradient quick", "optimised", "later gradient quick (ms)", "optimised (ms)", "ratio"], rows))
 
 
 if __name__ == "__main__":

@@ -13,6 +13,7 @@ import pathlib
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 from jaxbody._xla import default_xla_flags
 
@@ -409,6 +410,26 @@ def test_first_call_benchmark_smoke(tmp_path):
         assert run["case"] == "disk" and "error" not in run, run
         assert all(run[k] > 0 for k in ("import_s", "simulate_s", "grad_s"))
     assert "| disk |" in md
+
+
+@pytest.mark.slow  # four fresh processes, each compiling a gradient from an empty cache
+def test_forward_derivative_benchmark_smoke(tmp_path):
+    """benchmarks/forward_derivative.py: the arm with one gain and the disk, in each mode."""
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env.setdefault("XLA_FLAGS", default_xla_flags())
+    cmd = [sys.executable, str(BENCH / "forward_derivative.py"), "--sizes", "1", "--calls", "1", "--out", str(tmp_path),
+           "--name", "rec"]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env, cwd=REPO)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    rec = json.loads((tmp_path / "rec.json").read_text())
+    assert {(r["case"], r["mode"]) for r in rec["runs"]} == {(c, m) for c in ("arm", "disk") for m in ("forward", "reverse")}
+    for run in rec["runs"]:  # each mode served every derivative of its process
+        assert run["counts"]["forward"] > 0 if run["mode"] == "forward" else run["counts"]["forward"] == 0, run
+    forward = {r["case"]: r["grad"] for r in rec["runs"] if r["mode"] == "forward"}
+    reverse = {r["case"]: r["grad"] for r in rec["runs"] if r["mode"] == "reverse"}
+    for case in forward:
+        np.testing.assert_allclose(forward[case], reverse[case], rtol=1e-10)
+    assert "| arm | 1 |" in (tmp_path / "rec.md").read_text()
 
 
 def test_eager_calls_benchmark_smoke(tmp_path):
