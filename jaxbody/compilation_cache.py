@@ -16,10 +16,11 @@ What is left as it is:
 
 Otherwise :func:`enable` sets ``jax_compilation_cache_dir``, stores compilations of at least
 :data:`MIN_COMPILE_SECONDS` (JAX's default is 1 s: a first simulation is a dozen programs of
-0.2-1 s each, and the checks compiled quickly at a system's construction take 0.05-0.1 s
-each), and bounds the directory to :data:`MAX_BYTES` (least recently used entries
-go first; where the ``filelock`` package is installed, which JAX needs for that) unless ``$JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS`` or
-``$JAX_COMPILATION_CACHE_MAX_SIZE`` say otherwise. JAX decides whether to use its cache at
+0.2-1 s each, and the checks compiled quickly at a system's construction take less), and
+bounds the directory to :data:`MAX_BYTES` (least recently used entries go first; where the
+``filelock`` package is installed, which JAX needs for that) unless
+``$JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS`` or ``$JAX_COMPILATION_CACHE_MAX_SIZE`` say
+otherwise. JAX decides whether to use its cache at
 the process's first compilation: import jaxbody before compiling anything.
 """
 
@@ -34,7 +35,8 @@ __all__ = ["ENV_SWITCH", "MAX_BYTES", "MIN_COMPILE_SECONDS", "cache_root", "enab
 #: The environment variable that turns JAX's persistent cache off (``0``, ``off``, ``false``, ``no``).
 ENV_SWITCH = "JAXBODY_JAX_CACHE"
 #: Shortest compilation stored (seconds); shorter ones cost less to repeat than to read back.
-#: The four-bar's construction-time checks, compiled quickly, take 0.07 and 0.11 s: stored.
+#: The construction-time checks compiled quickly (:func:`jaxbody._util.compiled_when_eager`)
+#: take less than 0.2 s each (``benchmarks/first_call.py --log-compiles`` lists every compile).
 MIN_COMPILE_SECONDS = 0.05
 #: Size bound of ``<cache>/jax`` (bytes).
 MAX_BYTES = 2 * 1024**3
