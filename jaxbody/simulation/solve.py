@@ -176,11 +176,13 @@ def simulate_scene(
     # the layout and the native switch are computed out here: static arguments of the compiled solve
     # a program traced in an earlier process is run as stored (no trace: program_store)
     native = native_solve_enabled()
+    # a forward-mode variant only matters where a derivative may be taken (traced inputs)
+    traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((scene, y0, t0, t1)))
     integrated, saved = program_store.call_then(
         _integrate, (scene, y0, t0, t1, valid, solver_obj, controller, dt0, saveat, max_steps, adjoint, meter, event,
                      dense, slots, native), "simulate",
         _saved_quantities, lambda out: (scene, y0, t0, out[0], out[1], tuple(work_names)), "saved",
-        first_forward_args=None if adjoint_chosen else _forward_variant(
+        first_forward_args=None if adjoint_chosen or not traced else _forward_variant(
             scene, y0, t0, t1, valid, guarded, solver_obj, controller, dt0, saveat, max_steps, adjoint, meter, event,
             dense, slots, native))
     sol = _solution(integrated, saved, solution_layout(scene))
