@@ -33,7 +33,7 @@ import numpy as np
 from ._types import Array, Float
 from .joints import HINGE, SLIDE
 from .kinematics import forward_kinematics, integrate_qpos, qpos_rate
-from .loop_directions import (CLOSED_ATOL, close_loops, gap_jacobians, gap_velocity_bias, loop_frame, loop_rows, point_gap,
+from .loop_directions import (CLOSED_ATOL, close_loops, gap_and_jacobian, gap_jacobians, gap_velocity_bias, loop_frame, loop_rows, point_gap,
                               point_gap_velocity)
 from .maggi.constrained import ConstrainedSystem
 from .maggi.constraint import Constraint
@@ -264,6 +264,10 @@ class LoopClosure(Constraint):
     def velocity(self, base, t, q, x):
         return self.axes @ point_gap_velocity(_model(base), q, x, self.body_a, self.point_a, self.body_b,
                                               self.point_b, self.frame)
+
+    def velocity_jacobian(self, base, t, q, x):
+        return self.axes @ gap_and_jacobian(_model(base), q, self.body_a, self.point_a, self.body_b, self.point_b,
+                                            self.frame)[1]
 
     def velocity_bias(self, base, t, q, x):
         return self.axes @ gap_velocity_bias(_model(base), q, x, self.body_a, self.point_a, self.body_b,

@@ -25,6 +25,7 @@ from ._types import Array, ArrayLike, Float
 from ._util import check_shape, index, quat_multiply, quat_to_matrix, skew
 from .joints import BALL, FREE, HINGE, SLIDE
 from .model import Model
+from .shared_evaluation import shared
 
 __all__ = [
     "Kinematics",
@@ -127,6 +128,7 @@ def _compose(outer, inner):
     return Ro @ Ri, jnp.einsum("nij,nj->ni", Ro, ti) + to
 
 
+@shared
 def forward_kinematics(model: Model, q: Float[ArrayLike, " nq"]) -> Kinematics:
     """World frames, base points, poles, CMs and DoF motions at configuration ``q``.
 
@@ -135,7 +137,9 @@ def forward_kinematics(model: Model, q: Float[ArrayLike, " nq"]) -> Kinematics:
     The frames are traced once per model structure and shape of ``q`` and reused (a nested
     ``jit``): constraint residuals, their Jacobians and rates call this again and again, and
     re-tracing it each time was most of the trace of a constrained simulation. XLA inlines the
-    call, so the compiled program is unchanged.
+    call, so the compiled program is unchanged. Within
+    :func:`jaxbody.shared_evaluation.shared_evaluations` (a vector field's body), a second call
+    with the same ``model`` and ``q`` objects returns the first call's frames.
     """
     q = check_shape(q, (model.nq,), "q", dtype=model.body_pos.dtype)
     return _forward_kinematics(model, q)

@@ -35,6 +35,7 @@ import numpy as np
 
 from ._types import Array, Float
 from .kinematics import body_accelerations, forward_kinematics
+from .shared_evaluation import shared
 
 __all__ = [
     "loop_frame",
@@ -140,6 +141,13 @@ def _point_motion(kin, motion, body: int, point):
     return X, velocity, acceleration
 
 
+@shared
+def _velocity_product_motion(model, kin, v):
+    """The bodies' motion at joint rates ``v`` and zero joint accelerations: one pass for every
+    loop of a model (shared within a vector field's evaluation)."""
+    return body_accelerations(model, kin, v, jnp.zeros_like(v))
+
+
 def gap_velocity_bias(model, q, v, body_a: int, point_a, body_b: int, point_b, frame: int = -1) -> Float[Array, " 3"]:
     """``Ġ v``: the second derivative of :func:`point_gap` along ``q̇ = qpos_rate(q, v)`` at
     zero joint accelerations, so that ``φ̈ = G v̇ + Ġ v`` (the constraint rows' ``γ``).
@@ -156,7 +164,7 @@ def gap_velocity_bias(model, q, v, body_a: int, point_a, body_b: int, point_b, f
         return jnp.zeros((3,), dtype)
     kin = forward_kinematics(model, q)
     v = jnp.asarray(v)
-    motion = body_accelerations(model, kin, v, jnp.zeros_like(v))
+    motion = _velocity_product_motion(model, kin, v)
     xa, va, aa = _point_motion(kin, motion, body_a, point_a)
     xb, vb, ab = _point_motion(kin, motion, body_b, point_b)
     g, g_dot, g_ddot = xa - xb, va - vb, aa - ab

@@ -22,6 +22,7 @@ from .._types import Array
 from .._util import compiled_when_eager
 from ..linalg import gauss_jordan, solve_general
 from ..model import Model
+from ..shared_evaluation import shared_evaluations
 from .systems import SINGULAR_PIVOT, MaggiResult, ModelBase
 
 __all__ = ["MaggiSolution", "ConstrainedSystem", "pivoted_free", "selection_quality"]
@@ -120,12 +121,14 @@ class ConstrainedSystem(eqx.Module):
 
     # -- constraint functions ------------------------------------------------------------
     @compiled_when_eager
+    @shared_evaluations()  # every constraint's rows from one computation of the frames
     def constraint_residual(self, t, q, x) -> Array:
         """``f*(t, q, x)`` of all constraints, concatenated (s,)."""
         if not self.constraints:
             return jnp.zeros((0,), jnp.asarray(x).dtype)
         return jnp.concatenate([c.velocity(self.base, t, q, x) for c in self.constraints])
 
+    @shared_evaluations()  # every constraint's rows from one computation of the frames
     def constraint_velocity_bias(self, t, q, x) -> Array:
         """``γ = ∂f*/∂q·q̇ + ∂f*/∂t`` at fixed ``x`` (M.6), all rows (s,): each constraint's
         closed form (:meth:`Constraint.velocity_bias`) where it gives one, else a forward-mode
@@ -145,6 +148,7 @@ class ConstrainedSystem(eqx.Module):
         ])
 
     @compiled_when_eager(quick=True)  # a check: evaluated eagerly about once per system
+    @shared_evaluations()  # every constraint's rows from one computation of the frames
     def position_residual(self, t, q) -> Array:
         """``φ(t, q)`` of the holonomic rows, zero on non-holonomic rows (s,)."""
         parts = []
@@ -157,9 +161,17 @@ class ConstrainedSystem(eqx.Module):
         return jnp.concatenate(parts) if parts else jnp.zeros((0,), q.dtype)
 
     @compiled_when_eager
+    @shared_evaluations()  # every constraint's rows from one computation of the frames
     def constraint_jacobian(self, t, q, x) -> Array:
-        """``G = ∂f*/∂x`` (s, n)."""
-        return jax.jacfwd(lambda xx: self.constraint_residual(t, q, xx))(x)
+        """``G = ∂f*/∂x`` (s, n): each constraint's closed form
+        (:meth:`Constraint.velocity_jacobian`) where it gives one, else forward mode in ``x``."""
+        closed = [c.velocity_jacobian(self.base, t, q, x) for c in self.constraints]
+        if all(g is None for g in closed):
+            return jax.jacfwd(lambda xx: self.constraint_residual(t, q, xx))(x)
+        return jnp.concatenate([
+            jax.jacfwd(lambda xx, c=c: c.velocity(self.base, t, q, xx))(x) if g is None
+            else jnp.reshape(g, (c.size, self.nv)) for c, g in zip(self.constraints, closed)
+        ], axis=0)
 
     def characteristics(self, t, q, x) -> Array:
         """``ε(t, q, x)`` (n − s,)."""
@@ -247,8 +259,10 @@ class ConstrainedSystem(eqx.Module):
         """:meth:`solve` traced into the caller's program (no compiled call of its own, no
         conversion of the arguments): for callers that already trace, such as a ``vmap`` over
         saved states."""
-        D, h = self.base.bracket_terms(t, q, x, tau)
-        return self._reduce(t, q, x, D, h, stabilise)
+        # the base's bracket terms and every constraint row ask for the frames of the same q
+        with shared_evaluations():
+            D, h = self.base.bracket_terms(t, q, x, tau)
+            return self._reduce(t, q, x, D, h, stabilise)
 
     def _reduce(self, t, q, x, D, h, stabilise) -> MaggiSolution:
         """M.11–M.12 from the bracket terms ``(D, h)`` (given by the base system, or by a scene)."""

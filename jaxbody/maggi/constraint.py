@@ -43,6 +43,13 @@ class Constraint(eqx.Module):
         not carry, in closed form; ``None`` (the default) to have it differentiated."""
         return None
 
+    # None: the reduced dynamics differentiates velocity() with respect to x. A closed form
+    # saves a forward-mode pass with one tangent per quasi-velocity at every evaluation
+    def velocity_jacobian(self, base, t, q, x) -> Array | None:
+        """``G = ∂f*/∂x`` (``size``, n) in closed form; ``None`` (the default) to have it
+        differentiated."""
+        return None
+
     @property
     def size(self) -> int:
         raise NotImplementedError

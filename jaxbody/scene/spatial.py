@@ -16,6 +16,7 @@ from ..effects import Actuation, EffectContext, FourierTorque, Gravity, JointDam
 from ..backends import acceleration, resolve_kernel
 from ..kernels import bias_forces, body_wrench_force, kinetic_energy, mass_matrix, uniform_field_force
 from ..linalg import solve_spd
+from ..shared_evaluation import shared_evaluations
 from .base import ModelScene, compiled_when_eager
 
 __all__ = ["SpatialScene"]
@@ -77,6 +78,12 @@ class SpatialScene(ModelScene):
     # ------------------------------------------------------------------ protocol
     @compiled_when_eager
     def evaluate(self, t, q, v, tau=None):
+        # the mass matrix, the velocity terms and every constraint row ask for the frames of the
+        # same q: one computation of them in the traced evaluation
+        with shared_evaluations():
+            return self._evaluate(t, q, v, tau)
+
+    def _evaluate(self, t, q, v, tau):
         if self.is_direct():
             return self._evaluate_direct(t, q, v, tau)
         ctx = self.context(t, q, v)
@@ -148,6 +155,7 @@ class SpatialScene(ModelScene):
         return kinetic_energy(self.system, compute_data(self.system, q, v))
 
     @compiled_when_eager
+    @shared_evaluations()  # the kinetic and the potential energy from one computation of the frames
     def total_energy(self, q: Float[Array, " nq"], v: Float[Array, " nv"]) -> Float[Array, ""]:
         # the energies of a straight-line kernel come from the same program as its dynamics,
         # so a batch of them is one native call instead of the vectorised kinematics

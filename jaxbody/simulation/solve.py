@@ -19,6 +19,7 @@ import optimistix as optx
 from .. import maggi, program_store
 from .._util import concrete_primals, is_concrete
 from ..scene import Event
+from ..shared_evaluation import shared_evaluations
 from ..validation import raise_if_any
 from .adjoint import choose_adjoint, step_bound
 from .checks import (
@@ -389,12 +390,24 @@ def _saved_quantities(scene, y0, t0, ts, ys, work_names):
     (:func:`jaxbody.program_store.call_then`)."""
     q, v = ys[0], ys[1]
     finite = jnp.all(jnp.isfinite(q), axis=-1) & jnp.all(jnp.isfinite(v), axis=-1)
+    constrained = scene.constraints is not None
+    # diffrax pads unsaved entries with inf: evaluate everything on a safe state there
+    qs = jnp.where(finite[:, None], q, y0[0])
+    vs = jnp.where(finite[:, None], v, y0[1])
+    ts_safe = jnp.where(finite, ts, t0)
+
+    @shared_evaluations()  # the energy, the drift and the reactions of one state from one computation of its frames
+    def at_state(tt, qq, vv):
+        energy = scene.total_energy(qq, vv) if scene.has_energy else None
+        if not constrained:
+            return energy, None, None
+        # Λ does not depend on the coordinate partition: each state with its best-conditioned one
+        return energy, scene.constraint_drift(tt, qq, vv), with_best_partition(scene, tt, qq, vv).evaluate(tt, qq, vv)[2]
+
+    energy, residuals, lam = jax.vmap(at_state)(ts_safe, qs, vs)
     work = {}
     if scene.has_energy:
-        # diffrax pads unsaved entries with inf: evaluate energies on a safe state there
-        qs = jnp.where(finite[:, None], q, y0[0])
-        vs = jnp.where(finite[:, None], v, 0.0)
-        energy = jnp.where(finite, jax.vmap(scene.total_energy)(qs, vs), jnp.nan)
+        energy = jnp.where(finite, energy, jnp.nan)
         if len(ys) == 3:
             work = {name: ys[2][:, i] for i, name in enumerate(work_names)}
         # the balance from the initial state, not from the first saved time (which may be later)
@@ -402,22 +415,15 @@ def _saved_quantities(scene, y0, t0, ts, ys, work_names):
         bal = energy_balance(energy, work, energy0, y0[2] if len(y0) == 3 else None) / balance_scale(energy, energy0)
         drift = jnp.max(jnp.where(finite, jnp.abs(bal), 0.0))
     else:
-        energy = drift = energy0 = None
-        qs, vs = q, v
+        drift = energy0 = None
     cdrift = reactions = None
-    if scene.constraints is not None:
+    if constrained:
         # constraint residuals and reactions at the saved states (padding entries: NaN)
-        if not scene.has_energy:
-            qs = jnp.where(finite[:, None], q, y0[0])
-            vs = jnp.where(finite[:, None], v, y0[1])
-        t_safe = jnp.where(finite, ts, t0)
-        pos, vel = jax.vmap(scene.constraint_drift)(t_safe, qs, vs)
+        pos, vel = residuals
         cdrift = {
             "position": jnp.where(finite[:, None], pos, jnp.nan),
             "velocity": jnp.where(finite[:, None], vel, jnp.nan),
         }
-        # Λ does not depend on the coordinate partition: each state with its best-conditioned one
-        lam = jax.vmap(lambda tt, a, b: with_best_partition(scene, tt, a, b).evaluate(tt, a, b)[2])(t_safe, qs, vs)
         reactions = jnp.where(finite[:, None], lam, jnp.nan)
     return energy, work, drift, energy0, cdrift, reactions
 
