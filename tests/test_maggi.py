@@ -56,6 +56,30 @@ def test_results_do_not_depend_on_the_choice_of_epsilon():
             np.testing.assert_allclose(G @ r.K, np.eye(2), atol=1e-12)
 
 
+def test_partitioned_parametrisation_is_the_inverse_of_e_over_g():
+    """With ε chosen by partitioning, [A | K] comes from the s × s block of the dependent
+    velocities: it must still be the inverse of [E; G] (regular partitions of the rolling disk),
+    and a partition that repeats an index is reported singular, not inverted."""
+    user = regimes()[2]
+    auto = maggi.constrain(user.base, user.constraints, q_ref=jnp.array([0.0, 0.0, 0.0, TH, 0.0]))
+    q, x = rolling_state(np.random.default_rng(3))
+    G = np.asarray(auto.constraint_jacobian(0.0, q, x))
+    for free in ((0, 1, 2), (1, 3, 4), (0, 1, 3), (1, 2, 4)):  # x[1] is in no row: always free
+        system = auto.with_partition(free)
+        A, K, ratio = system.parametrisation(0.0, q, x)
+        J = np.vstack([np.asarray(system.selection(x)), G])
+        np.testing.assert_allclose(np.hstack([A, K]), np.linalg.inv(J), rtol=1e-12, atol=1e-13)
+        assert float(ratio) > maggi.SINGULAR_PIVOT
+        # the same dynamics whatever the partition
+        np.testing.assert_allclose(system.solve(0.0, q, x).xdot, user.solve(0.0, q, x).xdot, rtol=1e-11, atol=1e-12)
+    for free in ((0, 0, 1), (0, 1, 7)):
+        assert float(auto.with_partition(free).parametrisation(0.0, q, x)[2]) == 0.0
+    # x[1] appears in no constraint row: leaving it dependent makes G's dependent block singular
+    singular = auto.with_partition((0, 3, 4))
+    assert abs(np.linalg.det(np.vstack([np.asarray(singular.selection(x)), G]))) < 1e-12
+    assert not float(singular.parametrisation(0.0, q, x)[2]) > maggi.SINGULAR_PIVOT
+
+
 def test_nonlinear_constraint_against_lagrange_multipliers():
     """A sliding disk whose angular speed is held constant (f* = |ω|² − ω₀² = 0, nonlinear
     in x): Maggi with A = ∂x/∂ε (AD) vs the multiplier solution written here."""

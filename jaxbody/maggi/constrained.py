@@ -185,10 +185,38 @@ class ConstrainedSystem(eqx.Module):
         the partition changes inside a solve, and XLA's dynamic gathers are slow on CPU)."""
         return (self.free[:, None] == jnp.arange(self.nv, dtype=self.free.dtype)[None, :]).astype(jnp.asarray(x).dtype)
 
+    def dependent_selection(self, x) -> Array:
+        """One-hot rows (s, n) of the dependent quasi-velocities (those not in ``free``), in
+        ascending order; a product, like :meth:`selection`."""
+        n, s = self.nv, self.n_constraint
+        is_free = jnp.any(self.free[:, None] == jnp.arange(n, dtype=self.free.dtype)[None, :], axis=0)
+        # the k-th dependent column is the one preceded by k other dependent columns
+        rank = jnp.cumsum(~is_free) - 1
+        return ((rank[None, :] == jnp.arange(s)[:, None]) & ~is_free[None, :]).astype(jnp.asarray(x).dtype)
+
     @compiled_when_eager
     def parametrisation(self, t, q, x) -> tuple[Array, Array, Array]:
-        """``(A, K, pivot_ratio)`` with ``[A | K] = (∂ε̃/∂x)⁻¹`` (M.8–M.9)."""
+        """``(A, K, pivot_ratio)`` with ``[A | K] = (∂ε̃/∂x)⁻¹`` (M.8–M.9).
+
+        With ``ε`` chosen by partitioning, ``[E; G]`` is inverted through its ``s × s`` block:
+        with ``x = Eᵀε + Dᵀx_d`` (``D`` the :meth:`dependent_selection`), ``G x = f*`` gives
+        ``x_d = G_d⁻¹ (f* − G_f ε)``, ``G_f = G Eᵀ``, ``G_d = G Dᵀ``, so ``A = Eᵀ − Dᵀ G_d⁻¹ G_f`` and
+        ``K = Dᵀ G_d⁻¹``: an elimination over ``s`` columns instead of ``n`` (a biped's 10 loop rows
+        among 32 velocities). ``pivot_ratio`` is then the smallest pivot of ``G_d``'s elimination
+        over the largest entry of ``[E; G]``, zero when ``free`` repeats or misses an index.
+        """
         n, s = self.nv, self.n_constraint
+        if self.partitioned:
+            E, Dsel = self.selection(x), self.dependent_selection(x)
+            G = self.constraint_jacobian(t, q, x)
+            G_dep = G @ Dsel.T
+            YZ, ratio = solve_general(G_dep, jnp.concatenate([G @ E.T, jnp.eye(s, dtype=G.dtype)], axis=1))
+            tiny = jnp.finfo(G.dtype).tiny
+            ratio = ratio * jnp.maximum(jnp.max(jnp.abs(G_dep)), tiny) / jnp.maximum(jnp.max(jnp.abs(G)), 1.0)
+            # n − s distinct free indices in range: otherwise [E; G] is singular (repeated or empty rows)
+            distinct = (jnp.sum(E) == n - s) & (jnp.sum(jnp.max(E, axis=0)) == n - s)
+            ratio = jnp.where(distinct, ratio, 0.0)
+            return E.T - Dsel.T @ YZ[:, : n - s], Dsel.T @ YZ[:, n - s :], ratio
         if self.epsilon is None:
             E = self.selection(x)
         else:
