@@ -12,7 +12,7 @@ compile timed and its program run (the best of three runs). JAX's persistent com
 is off in the workers, so every compile is a compile. Cases: ``four-bar`` (three hinged bodies
 and a loop closure, ``benchmarks/maggi.py``) and ``cassie`` (a floating base with ball joints
 and ``<connect>`` loops; only with ``--cassie PATH``, its MJCF). Writes ``NAME.json`` and
-``NAME.md`` (default ``constrained_program``) to ``benchmarks/results``.
+``NAME.md`` (default ``constrained_program``) to ``--out`` (default ``benchmarks/results``).
 """
 
 import argparse
@@ -96,6 +96,7 @@ def _run(case, cassie, tree_path) -> dict:
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--name", default="constrained_program")
+    p.add_argument("--out", type=pathlib.Path, default=RESULTS)
     p.add_argument("--cases", default="four-bar", help=f"comma-separated of {CASES}")
     p.add_argument("--cassie", help="MJCF of a Cassie-like model (floating base, ball joints, <connect> loops)")
     p.add_argument("--baseline", type=pathlib.Path, help="another checkout timed alongside this tree")
@@ -133,7 +134,7 @@ def main(argv=None):
             "configuration's sum (the same physics in both trees).")
     write_record(args.name, record, "The compiled program of a constrained simulation", text,
                  ("case", "jaxbody", "trace", "HLO lines", "kinematics copies", "quick compile", "quick run",
-                  "optimised compile", "optimised run", "Σ q(1)"), rows)
+                  "optimised compile", "optimised run", "Σ q(1)"), rows, args.out)
 
 
 if __name__ == "__main__":

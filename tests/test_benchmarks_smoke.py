@@ -432,6 +432,24 @@ def test_forward_derivative_benchmark_smoke(tmp_path):
     assert "| arm | 1 |" in (tmp_path / "rec.md").read_text()
 
 
+@pytest.mark.slow  # about 20 s: the four-bar's solve traced and compiled twice in a fresh process
+def test_constrained_program_benchmark_smoke(tmp_path):
+    """benchmarks/constrained_program.py: the four-bar's solve program measured; the quick and the
+    optimised program reach the same state, and the frames are computed once per evaluation (a
+    handful of copies of forward kinematics in the whole solve, not one per constraint request)."""
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env.setdefault("XLA_FLAGS", default_xla_flags())
+    cmd = [sys.executable, str(BENCH / "constrained_program.py"), "--cases", "four-bar", "--out", str(tmp_path), "--name", "rec"]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env, cwd=REPO)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    (run,) = json.loads((tmp_path / "rec.json").read_text())["runs"]
+    assert "error" not in run, run
+    assert run["hlo_lines"] > 1000 and 1 <= run["kinematics_copies"] <= 12, run
+    assert run["quick_compile_s"] > 0 and run["optimised_run_s"] > 0
+    np.testing.assert_allclose(run["quick_q_final_sum"], run["optimised_q_final_sum"], rtol=1e-9)
+    assert "| four-bar | this tree |" in (tmp_path / "rec.md").read_text()
+
+
 def test_eager_calls_benchmark_smoke(tmp_path):
     """benchmarks/eager_calls.py: one model in a fresh process, first and later eager calls timed."""
     rec, md = _run_fresh("eager_calls.py", tmp_path, "--models", "chain2", "--calls", "2")
