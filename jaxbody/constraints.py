@@ -33,8 +33,8 @@ import numpy as np
 from ._types import Array, Float
 from .joints import HINGE, SLIDE
 from .kinematics import forward_kinematics, integrate_qpos, qpos_rate
-from .loop_directions import (CLOSED_ATOL, close_loops, gap_and_jacobian, gap_jacobians, gap_velocity_bias, loop_frame, loop_rows, point_gap,
-                              point_gap_velocity)
+from .loop_directions import (CLOSED_ATOL, close_loops, gap_and_jacobian, gap_jacobians, gap_velocity_bias, loop_frame,
+                              loop_rows, point_gap, point_gap_velocity)
 from .maggi.constrained import ConstrainedSystem
 from .maggi.constraint import Constraint
 from .maggi.projections import constrain

@@ -11,10 +11,10 @@ compile from 11.4 to 4.3 s and its optimised run from 2.4 to 0.8 s
 
 Within :func:`shared_evaluations`, a function decorated with :func:`shared` returns its first
 result again when it is called with the same arguments (the same pytree structure around the
-very same leaf objects: tracers have no value to compare) in the same trace. The trace is part of the key because a
-result computed inside a nested trace (a ``lax.cond`` branch, a ``jvp``) holds that trace's
-tracers, which must not escape to the caller. Outside a scope the functions run as usual.
-Scopes are per thread (solves are traced on helper threads beside the caller's).
+very same leaf objects: tracers have no value to compare) in the same trace. The trace is part
+of the key because a result computed inside a nested trace (a ``lax.cond`` branch, a ``jvp``)
+holds that trace's tracers, which must not escape to the caller. Outside a scope the functions
+run as usual. Scopes are per thread (solves are traced on helper threads beside the caller's).
 """
 
 import contextlib

@@ -396,7 +396,8 @@ def _saved_quantities(scene, y0, t0, ts, ys, work_names):
     vs = jnp.where(finite[:, None], v, y0[1])
     ts_safe = jnp.where(finite, ts, t0)
 
-    @shared_evaluations()  # the energy, the drift and the reactions of one state from one computation of its frames
+    # the energy, the drift and the reactions of one state from one computation of its frames
+    @shared_evaluations()
     def at_state(tt, qq, vv):
         energy = scene.total_energy(qq, vv) if scene.has_energy else None
         if not constrained:
