@@ -80,6 +80,32 @@ def test_partitioned_parametrisation_is_the_inverse_of_e_over_g():
     assert not float(singular.parametrisation(0.0, q, x)[2]) > maggi.SINGULAR_PIVOT
 
 
+def test_partition_qualities_through_the_dependent_block_equal_the_full_determinant():
+    """partition_qualities (s × s blocks, one Gram determinant) against selection_quality
+    (the n × n determinant of [E; G]) for every choice of free columns of random Jacobians, in
+    ascending and in shuffled order (the sign follows the order of E's rows), singular choices
+    included."""
+    import itertools
+
+    from jaxbody.maggi.constrained import partition_qualities, selection_quality
+
+    fast_quality = jax.jit(lambda G, free: partition_qualities(G, free)[0])
+    full_quality = jax.jit(selection_quality)
+    rng = np.random.default_rng(5)
+    for s, n in ((1, 3), (2, 5), (3, 6)):
+        G = jnp.asarray(rng.normal(size=(s, n)))
+        G = G.at[:, 0].set(0.0) if s == 2 else G  # a column in no row: choices leaving it dependent are singular
+        for free in itertools.combinations(range(n), n - s):
+            for order in (free, tuple(rng.permutation(free))):
+                E = jnp.eye(n)[jnp.asarray(order)]
+                np.testing.assert_allclose(fast_quality(G, jnp.asarray(order)), full_quality(E, G), rtol=1e-12, atol=1e-14)
+    G = jnp.asarray(rng.normal(size=(2, 5)))
+    a, b = partition_qualities(G, jnp.array([0, 1, 2]), jnp.array([2, 3, 4]))
+    np.testing.assert_allclose([a, b], [selection_quality(jnp.eye(5)[:3], G), selection_quality(jnp.eye(5)[2:], G)],
+                               rtol=1e-12)
+    assert float(partition_qualities(G, jnp.array([0, 0, 1]))[0]) == 0.0  # a repeated index: singular
+
+
 def test_nonlinear_constraint_against_lagrange_multipliers():
     """A sliding disk whose angular speed is held constant (f* = |ω|² − ω₀² = 0, nonlinear
     in x): Maggi with A = ∂x/∂ε (AD) vs the multiplier solution written here."""

@@ -25,7 +25,7 @@ from ..model import Model
 from ..shared_evaluation import shared_evaluations
 from .systems import SINGULAR_PIVOT, MaggiResult, ModelBase
 
-__all__ = ["MaggiSolution", "ConstrainedSystem", "pivoted_free", "selection_quality"]
+__all__ = ["MaggiSolution", "ConstrainedSystem", "partition_qualities", "pivoted_free", "selection_quality"]
 
 
 class MaggiSolution(eqx.Module):
@@ -188,11 +188,7 @@ class ConstrainedSystem(eqx.Module):
     def dependent_selection(self, x) -> Array:
         """One-hot rows (s, n) of the dependent quasi-velocities (those not in ``free``), in
         ascending order; a product, like :meth:`selection`."""
-        n, s = self.nv, self.n_constraint
-        is_free = jnp.any(self.free[:, None] == jnp.arange(n, dtype=self.free.dtype)[None, :], axis=0)
-        # the k-th dependent column is the one preceded by k other dependent columns
-        rank = jnp.cumsum(~is_free) - 1
-        return ((rank[None, :] == jnp.arange(s)[:, None]) & ~is_free[None, :]).astype(jnp.asarray(x).dtype)
+        return _partition_selections(self.free, self.nv, jnp.asarray(x).dtype)[1]
 
     @compiled_when_eager
     def parametrisation(self, t, q, x) -> tuple[Array, Array, Array]:
@@ -207,15 +203,9 @@ class ConstrainedSystem(eqx.Module):
         """
         n, s = self.nv, self.n_constraint
         if self.partitioned:
-            E, Dsel = self.selection(x), self.dependent_selection(x)
             G = self.constraint_jacobian(t, q, x)
-            G_dep = G @ Dsel.T
-            YZ, ratio = solve_general(G_dep, jnp.concatenate([G @ E.T, jnp.eye(s, dtype=G.dtype)], axis=1))
-            tiny = jnp.finfo(G.dtype).tiny
-            ratio = ratio * jnp.maximum(jnp.max(jnp.abs(G_dep)), tiny) / jnp.maximum(jnp.max(jnp.abs(G)), 1.0)
-            # n − s distinct free indices in range: otherwise [E; G] is singular (repeated or empty rows)
-            distinct = (jnp.sum(E) == n - s) & (jnp.sum(jnp.max(E, axis=0)) == n - s)
-            ratio = jnp.where(distinct, ratio, 0.0)
+            E, Dsel = _partition_selections(self.free, n, G.dtype)
+            YZ, ratio, _, _ = _dependent_block(G, E, Dsel, jnp.concatenate([G @ E.T, jnp.eye(s, dtype=G.dtype)], axis=1))
             return E.T - Dsel.T @ YZ[:, : n - s], Dsel.T @ YZ[:, n - s :], ratio
         if self.epsilon is None:
             E = self.selection(x)
@@ -248,7 +238,7 @@ class ConstrainedSystem(eqx.Module):
         if not self.partitioned:
             # no partition to degrade: the best quality, so the partition solver never re-chooses
             return jnp.ones((), jnp.asarray(x).dtype)
-        return selection_quality(self.selection(x), self.constraint_jacobian(t, q, x))
+        return partition_qualities(self.constraint_jacobian(t, q, x), self.free)[0]
 
     def best_partition(self, t, q, x) -> Array:
         """The free quasi-velocities that column-pivoted QR of ``G`` chooses at ``(t, q, x)``
@@ -386,6 +376,55 @@ class ConstrainedSystem(eqx.Module):
 @eqx.filter_jit
 def _solve_jit(system, t, q, x, tau, stabilise):
     return system.solve_inline(t, q, x, tau, stabilise)
+
+
+def _partition_selections(free, n: int, dtype) -> tuple[Array, Array]:
+    """``(E, D)``: one-hot rows of the free quasi-velocities ``free`` (in their order) and of the
+    others (ascending), built as products (no gathers: ``free`` changes inside a solve)."""
+    cols = jnp.arange(n, dtype=free.dtype)
+    E = (free[:, None] == cols[None, :])
+    is_free = jnp.any(E, axis=0)
+    # the k-th dependent column is the one preceded by k other dependent columns
+    rank = jnp.cumsum(~is_free) - 1
+    D = (rank[None, :] == jnp.arange(n - free.shape[0])[:, None]) & ~is_free[None, :]
+    return E.astype(dtype), D.astype(dtype)
+
+
+def _dependent_block(G, E, D, B):
+    """Gauss–Jordan of the dependent block ``G_d = G Dᵀ`` against ``B``: ``(G_d⁻¹B, pivot_ratio,
+    sign, log|det G_d|)``, the ratio being the smallest pivot over the largest entry of
+    ``[E; G]`` and zero unless ``E`` selects ``n − s`` distinct columns (repeated or missing
+    indices make ``[E; G]`` singular)."""
+    s, n = G.shape
+    G_dep = G @ D.T
+    X, ratio, sign, logdet = gauss_jordan(G_dep, B)
+    tiny = jnp.finfo(G.dtype).tiny
+    ratio = ratio * jnp.maximum(jnp.max(jnp.abs(G_dep)), tiny) / jnp.maximum(jnp.max(jnp.abs(G)), 1.0)
+    distinct = (jnp.sum(E) == n - s) & (jnp.sum(jnp.max(E, axis=0)) == n - s)
+    return X, jnp.where(distinct, ratio, 0.0), sign, logdet
+
+
+def partition_qualities(G, *frees) -> tuple[Array, ...]:
+    """The signed quality of :func:`selection_quality` of each partition ``free`` (indices of
+    the free quasi-velocities, each (n − s,)) for one ``G``, through the partitions' ``s × s``
+    dependent blocks: with ``P`` the column permutation that puts the free columns first (in
+    their order) and the dependent ones after (ascending), ``[E; G] P = [[I, 0], [G_f, G_d]]``,
+    so ``det[E; G] = det G_d · sign P``. ``det(G·Gᵀ)`` is computed once for all of them."""
+    s, n = G.shape
+    _, _, _, loggram = gauss_jordan(G @ G.T, jnp.zeros((s, 0), G.dtype))
+    cols = jnp.arange(n)
+    out = []
+    for free in frees:
+        free = jnp.asarray(free, jnp.int32)
+        E, D = _partition_selections(free, n, G.dtype)
+        _, ratio, sign, logdet = _dependent_block(G, E, D, jnp.zeros((s, 0), G.dtype))
+        # the sign of P: the parity of the inversions of the column order (free..., dependent...)
+        order = jnp.concatenate([free, (D @ cols.astype(G.dtype)).astype(jnp.int32)])
+        inversions = jnp.sum(jnp.triu(order[:, None] > order[None, :], k=1))
+        sign = sign * (1 - 2 * (inversions % 2)).astype(G.dtype)
+        quality = sign * jnp.exp(jnp.minimum(logdet - 0.5 * loggram, 0.0))
+        out.append(jnp.where(ratio > SINGULAR_PIVOT, quality, 0.0))
+    return tuple(out)
 
 
 def selection_quality(E, G) -> Array:

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from ..maggi import SINGULAR_PIVOT, ConstrainedSystem
-from ..maggi.constrained import pivoted_free, selection_quality
+from ..maggi.constrained import partition_qualities, pivoted_free
 from ..scene import Scene
 from .delegating import DelegatingSolver
 
@@ -65,8 +65,8 @@ def _partition_check(cs, t, q, x, sign):
     t, q, x = lax.stop_gradient((t, q, x))
     G = cs.constraint_jacobian(t, q, x)
     best = pivoted_free(G)
-    c = selection_quality(cs.selection(x), G)
-    cb = selection_quality(cs.with_partition(best).selection(x), G)
+    # both qualities through their s × s dependent blocks, with one Gram determinant
+    c, cb = partition_qualities(G, cs.free, best)
     flipped = (sign != 0) & (jnp.sign(c) != sign)
     # relative to the best partition here, so the tolerance does not depend on how well G is
     # conditioned at this state; a sign change means the step crossed a singular state even if
