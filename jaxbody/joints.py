@@ -27,7 +27,7 @@ import numpy as np
 
 from ._types import ScalarLike, VectorLike
 from ._util import index, int_tuple
-from .tree import BodyTree
+from .tree import BodyTree, mask_module
 
 __all__ = [
     "JointSpec",
@@ -253,15 +253,17 @@ class JointLayout:
     # ------------------------------------------------------------------ traced helpers
     def _support(self, dtype):
         """``S[k, d] = 1`` iff DoF ``d`` moves body ``k`` (built in the program)."""
-        db = jnp.asarray(index(self.dof_body))
-        return self.tree.ancestor_or_self(db[None, :], jnp.arange(self.tree.n_body, dtype=jnp.int32)[:, None]).astype(dtype)
+        xp = mask_module(self.tree.n_body * self.nv)
+        db = xp.asarray(index(self.dof_body))
+        return self.tree.ancestor_or_self(db[None, :], xp.arange(self.tree.n_body, dtype=np.int32)[:, None]).astype(dtype)
 
     def _before(self, dtype):
         """``B[d, e] = 1`` iff DoF ``e`` comes before DoF ``d`` (see ``dof_before_pairs``)."""
-        db = jnp.asarray(index(self.dof_body))
-        dj = jnp.asarray(index(self.dof_joint))
-        rot = jnp.asarray(index(self.dof_is_rotation))
-        free = jnp.asarray(index([int(self.type[j] == FREE) for j in self.dof_joint]))
+        xp = mask_module(self.nv**2)
+        db = xp.asarray(index(self.dof_body))
+        dj = xp.asarray(index(self.dof_joint))
+        rot = xp.asarray(index(self.dof_is_rotation))
+        free = xp.asarray(index([int(self.type[j] == FREE) for j in self.dof_joint]))
         d, e = (slice(None), None), (None, slice(None))
         same_body = db[d] == db[e]
         strict_ancestor = self.tree.ancestor_or_self(db[e], db[d]) & ~same_body
@@ -271,8 +273,9 @@ class JointLayout:
 
     def mass_mask(self, dtype):
         """``U[a, b] = 1`` for ``a <= b`` with body(a) supporting body(b) (upper triangle of ``M``)."""
-        db = jnp.asarray(index(self.dof_body))
-        ids = jnp.arange(self.nv, dtype=jnp.int32)
+        xp = mask_module(self.nv**2)
+        db = xp.asarray(index(self.dof_body))
+        ids = xp.arange(self.nv, dtype=np.int32)
         upper = ids[:, None] <= ids[None, :]
         return (upper & self.tree.ancestor_or_self(db[:, None], db[None, :])).astype(dtype)
 

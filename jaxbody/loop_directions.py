@@ -83,6 +83,7 @@ def _point_and_jacobian(model, kin, body: int, point):
     return X, cols.T
 
 
+@shared  # a loop's rows and their Jacobian from one evaluation within a vector field's
 def gap_and_jacobian(model, q, body_a: int, point_a, body_b: int, point_b, frame: int = -1):
     """``(φ, G)``: the gap ``φ = R_fᵀ (p_a − p_b)`` of two body points in the frame of body
     ``frame`` (``-1``: world axes) and its exact velocity Jacobian ``G = ∂φ̇/∂v``, from one

@@ -13,11 +13,15 @@ Traced code uses the small helpers at the bottom (:meth:`BodyTree.subtree_sum`,
 :meth:`BodyTree.path_sum`, :meth:`BodyTree.accumulate_from_root` ...). How they sum is the
 tree's ``traversal``, chosen once when the tree is built and stored with it:
 
-* ``"dense"`` (default up to :data:`DENSE_LIMIT` bodies): products with 0/1 matrices that are
-  built *inside* the program from two length-``n`` index vectors (the preorder number of each
-  body and the end of its subtree's preorder interval: ``i`` is an ancestor-or-self of ``k`` iff
-  ``pre[i] <= pre[k] < end[i]``). One matrix product is fast in a batch, and no ``n × n``
-  constant is baked into the compiled program, whose size therefore grows only linearly;
+* ``"dense"`` (default up to :data:`DENSE_LIMIT` bodies): products with 0/1 matrices built
+  from two length-``n`` index vectors (the preorder number of each body and the end of its
+  subtree's preorder interval: ``i`` is an ancestor-or-self of ``k`` iff
+  ``pre[i] <= pre[k] < end[i]``). One matrix product is fast in a batch. A mask of up to
+  :data:`CONSTANT_MASK_ENTRIES` entries is computed here in NumPy and is a constant of the
+  compiled program (a few kilobytes; built in the program, each of a constrained solve's
+  dozens of masks was about ten operations to trace, lower and fold into a constant); a larger
+  one is built *inside* the program, so that no ``n × n`` constant grows the program
+  quadratically;
 * ``"segment"`` (default above the limit): ``jax.ops.segment_sum`` over precomputed index
   pairs, whose memory grows with the pairs rather than with ``n²``.
 
@@ -47,7 +51,7 @@ import numpy as np
 
 from ._util import index, int_tuple
 
-__all__ = ["BodyTree", "DENSE_LIMIT", "TRAVERSALS"]
+__all__ = ["BodyTree", "CONSTANT_MASK_ENTRIES", "DENSE_LIMIT", "TRAVERSALS", "mask_module"]
 
 #: default traversal: trees up to this many bodies use ``"dense"``, larger ones ``"segment"``
 DENSE_LIMIT = 256
@@ -186,19 +190,23 @@ class BodyTree:
         ``anc`` and ``body`` are static or traced body indices; the test is the preorder
         interval ``pre[anc] <= pre[body] < end[anc]`` (two length-``n`` constants).
         """
-        pre = jnp.asarray(index(self.preorder))
-        end = jnp.asarray(index(self.preorder_end))
+        # static indices (NumPy) give a NumPy mask, which small masks bake in as a constant
+        xp = np if isinstance(anc, np.ndarray) and isinstance(body, np.ndarray) else jnp
+        pre = xp.asarray(index(self.preorder))
+        end = xp.asarray(index(self.preorder_end))
         p_body = pre[body]
         return (pre[anc] <= p_body) & (p_body < end[anc])
 
     def _path_mask(self, dtype):
-        """``P[k, i] = 1`` iff ``i`` is ``k`` or a carrier of ``k``, built in the program."""
-        ids = jnp.arange(self.n_body, dtype=jnp.int32)
+        """``P[k, i] = 1`` iff ``i`` is ``k`` or a carrier of ``k`` (:func:`mask_module`)."""
+        xp = mask_module(self.n_body**2)
+        ids = xp.arange(self.n_body, dtype=np.int32)
         return self.ancestor_or_self(ids[None, :], ids[:, None]).astype(dtype)
 
     def _children_mask(self, dtype):
-        ids = jnp.arange(self.n_body, dtype=jnp.int32)
-        return (ids[:, None] == jnp.asarray(index(self.parent))[None, :]).astype(dtype)
+        xp = mask_module(self.n_body**2)
+        ids = xp.arange(self.n_body, dtype=np.int32)
+        return (ids[:, None] == xp.asarray(index(self.parent))[None, :]).astype(dtype)
 
     def _pairs(self, name):
         return jnp.asarray(index(getattr(self, name)))
@@ -267,6 +275,19 @@ class BodyTree:
 
         parent = jnp.asarray(index(self.parent))
         return jax.lax.fori_loop(0, self.jump_steps, step, (local, parent))[0]
+
+
+#: A 0/1 mask of at most this many entries is a constant of the compiled program; a larger
+#: one is built in the program from its index vectors (see the module docstring)
+CONSTANT_MASK_ENTRIES = 4096
+
+
+def mask_module(entries: int):
+    """The array module a 0/1 mask of ``entries`` entries is built with: NumPy (a constant of
+    the compiled program: nothing to trace, lower or fold) up to :data:`CONSTANT_MASK_ENTRIES`,
+    ``jax.numpy`` above (built in the program from its length-``n`` index vectors, so that the
+    program does not grow with ``n²``)."""
+    return np if entries <= CONSTANT_MASK_ENTRIES else jnp
 
 
 def _index_arrays(parent: tuple[int, ...]) -> dict:

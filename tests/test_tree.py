@@ -9,6 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import jaxbody as jb
+from jaxbody.tree import CONSTANT_MASK_ENTRIES
 
 from _support.random_models import hinge_chain, random_model, random_state
 
@@ -125,3 +126,16 @@ def test_segment_sum_traversal_equals_dense():
     d = tree.with_traversal("dense")
     for name in ("subtree_sum", "path_sum", "children_sum"):
         np.testing.assert_allclose(getattr(tree, name)(x), getattr(d, name)(x), atol=1e-14)
+
+
+@pytest.mark.parametrize("n, constant", [(10, True), (80, False)])
+def test_small_masks_are_constants_large_ones_are_built_in_the_program(n, constant):
+    """A mask of at most CONSTANT_MASK_ENTRIES entries is a constant of the program (nothing to
+    trace); a larger one is built in the program from its index vectors; both sum alike."""
+    tree = jb.BodyTree(list(range(-1, n - 1)))  # a chain: the path sum is the prefix sum
+    assert (n * n <= CONSTANT_MASK_ENTRIES) == constant
+    x = jnp.arange(float(n))
+    np.testing.assert_allclose(tree.path_sum(x), np.cumsum(np.arange(float(n))))
+    np.testing.assert_allclose(tree.subtree_sum(x), np.cumsum(np.arange(float(n))[::-1])[::-1])
+    eqns = len(jax.make_jaxpr(tree.path_sum)(x).eqns)
+    assert (eqns <= 3) if constant else (eqns > 5), eqns
