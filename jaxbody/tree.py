@@ -19,7 +19,7 @@ tree's ``traversal``, chosen once when the tree is built and stored with it:
   ``pre[i] <= pre[k] < end[i]``). One matrix product is fast in a batch. A mask of up to
   :data:`CONSTANT_MASK_ENTRIES` entries is computed here in NumPy and is a constant of the
   compiled program (a few kilobytes; built in the program, each of a constrained solve's
-  dozens of masks was about ten operations to trace, lower and fold into a constant); a larger
+  dozens of masks was several operations to trace, lower and fold into a constant); a larger
   one is built *inside* the program, so that no ``n × n`` constant grows the program
   quadratically;
 * ``"segment"`` (default above the limit): ``jax.ops.segment_sum`` over precomputed index
