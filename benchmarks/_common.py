@@ -291,6 +291,18 @@ def loop_body_ops(hlo_text: str) -> dict:
     return {"max": out[0]["ops"] if out else 0, "bodies": out[:4]}
 
 
+def parse_cases(text: str, known: tuple, cassie: str | None) -> list[str]:
+    """The comma-separated cases of ``text``, each one of ``known``; ``cassie`` needs its MJCF
+    (``--cassie PATH``). Exits with a message naming the case otherwise."""
+    cases = [c.strip() for c in text.split(",") if c.strip()]
+    for case in cases:
+        if case not in known:
+            raise SystemExit(f"unknown case {case!r}: one of {known}")
+        if case == "cassie" and not cassie:
+            raise SystemExit("case 'cassie' needs --cassie PATH (its MJCF)")
+    return cases
+
+
 def checkouts(baseline: pathlib.Path | None) -> tuple[dict, dict | None]:
     """The jaxbody checkouts a before/after benchmark times: ``{label: path}`` (``None``: this
     tree), the baseline (another checkout, e.g. a ``git worktree`` of an older commit) first;

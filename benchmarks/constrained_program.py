@@ -24,24 +24,17 @@ import sys
 import time
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-from _common import RESULTS, checkouts, stamp, write_record  # noqa: E402
+from _common import REPO, RESULTS, checkouts, parse_cases, stamp, write_record  # noqa: E402
+
+sys.path.insert(0, str(REPO / "tests"))
+from _support.jaxpr_tools import count_eqns  # noqa: E402
 
 CASES = ("four-bar", "cassie")
 
 
-def _kinematics_copies(jaxpr) -> int:
-    """Calls of forward kinematics (its nested jit) in a jaxpr and its sub-jaxprs."""
-    import jax.extend.core as jex
-
-    n = 0
-    for e in jaxpr.eqns:
-        if e.primitive.name in ("pjit", "jit") and e.params.get("name") == "_forward_kinematics":
-            n += 1
-        for p in e.params.values():
-            for s in p if isinstance(p, (tuple, list)) else [p]:
-                if isinstance(s, (jex.Jaxpr, jex.ClosedJaxpr)):
-                    n += _kinematics_copies(s.jaxpr if isinstance(s, jex.ClosedJaxpr) else s)
-    return n
+def _is_kinematics(eqn) -> bool:
+    """A call of forward kinematics (its nested jit) in a jaxpr."""
+    return eqn.primitive.name in ("pjit", "jit") and eqn.params.get("name") == "_forward_kinematics"
 
 
 def _best_run(compiled, *args) -> float:
@@ -70,7 +63,8 @@ def _worker(case: str, cassie: str | None) -> dict:
     t = time.perf_counter()
     lowered = simulate.lower(q0, v0)
     out = {"case": case, "trace_s": time.perf_counter() - t, "hlo_lines": len(lowered.as_text().splitlines())}
-    out["kinematics_copies"] = _kinematics_copies(jax.make_jaxpr(lambda q, v: jb.simulate(system, q, v, 1.0).q)(q0, v0).jaxpr)
+    jaxpr = jax.make_jaxpr(lambda q, v: jb.simulate(system, q, v, 1.0).q)(q0, v0).jaxpr
+    out["kinematics_copies"] = count_eqns(jaxpr, _is_kinematics)
     for label, options in (("quick", {"xla_backend_optimization_level": 0, "xla_cpu_parallel_codegen_split_count": 1}),
                            ("optimised", {})):
         t = time.perf_counter()
@@ -105,12 +99,7 @@ def main(argv=None):
     if args.worker:
         print(json.dumps(_worker(args.worker, args.cassie)))
         return
-    cases = [c.strip() for c in args.cases.split(",") if c.strip()]
-    for case in cases:
-        if case not in CASES:
-            raise SystemExit(f"unknown case {case!r}: one of {CASES}")
-        if case == "cassie" and not args.cassie:
-            raise SystemExit("case 'cassie' needs --cassie PATH (its MJCF)")
+    cases = parse_cases(args.cases, CASES, args.cassie)
     trees, baseline = checkouts(args.baseline)
     record = {"stamp": stamp(), "runs": []}
     if baseline:

@@ -42,7 +42,7 @@ import tempfile
 import time
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-from _common import RESULTS, checkouts, load_average, markdown_table, stamp, stamp_markdown  # noqa: E402
+from _common import RESULTS, checkouts, load_average, markdown_table, parse_cases, stamp, stamp_markdown  # noqa: E402
 
 CASES = ("panda", "iiwa", "disk", "four-bar", "cassie")
 HERE = pathlib.Path(__file__).resolve().parent
@@ -237,12 +237,7 @@ def main(argv=None):
         record["stamp"] = dict(records[0]["stamp"], merged_from=[dict(rec["stamp"]) for rec in records])
         _write(record, args)
         return
-    cases = [c.strip() for c in args.cases.split(",") if c.strip()]
-    for case in cases:
-        if case not in CASES:
-            raise SystemExit(f"unknown case {case!r}: one of {CASES}")
-        if case == "cassie" and not args.cassie:
-            raise SystemExit("case 'cassie' needs --cassie PATH (its MJCF)")
+    cases = parse_cases(args.cases, CASES, args.cassie)
     trees, baseline = checkouts(args.baseline)
     if args.trees != "both":
         trees = {k: v for k, v in trees.items() if (v is None) == (args.trees == "this")}

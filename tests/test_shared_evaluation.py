@@ -4,7 +4,6 @@ configuration computed once per vector-field evaluation, never a tracer handed a
 import threading
 
 import jax
-import jax.extend.core as jex
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -13,6 +12,8 @@ import jaxbody as jb
 from jaxbody import maggi
 from jaxbody.constraints import LoopClosure
 from jaxbody.shared_evaluation import shared, shared_evaluations
+
+from _support.jaxpr_tools import count_eqns
 
 CALLS = []
 
@@ -101,15 +102,8 @@ def test_scopes_are_per_thread():
 
 def _forward_kinematics_calls(jaxpr) -> int:
     """Copies of forward kinematics (its nested jit) in a jaxpr and its sub-jaxprs."""
-    n = 0
-    for e in jaxpr.eqns:
-        if e.primitive.name in ("pjit", "jit") and e.params.get("name") == "_forward_kinematics":
-            n += 1
-        for p in e.params.values():
-            for s in p if isinstance(p, (tuple, list)) else [p]:
-                if isinstance(s, (jex.Jaxpr, jex.ClosedJaxpr)):
-                    n += _forward_kinematics_calls(s.jaxpr if isinstance(s, jex.ClosedJaxpr) else s)
-    return n
+    return count_eqns(jaxpr, lambda e: e.primitive.name in ("pjit", "jit")
+                      and e.params.get("name") == "_forward_kinematics")
 
 
 def _looped_model():
