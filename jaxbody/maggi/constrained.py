@@ -183,7 +183,7 @@ class ConstrainedSystem(eqx.Module):
     def selection(self, x) -> Array:
         """``E = ∂ε/∂x`` of the partition: one-hot rows (n − s, n) (a product, not a gather:
         the partition changes inside a solve, and XLA's dynamic gathers are slow on CPU)."""
-        return (self.free[:, None] == jnp.arange(self.nv, dtype=self.free.dtype)[None, :]).astype(jnp.asarray(x).dtype)
+        return _partition_selections(self.free, self.nv, jnp.asarray(x).dtype)[0]
 
     def dependent_selection(self, x) -> Array:
         """One-hot rows (s, n) of the dependent quasi-velocities (those not in ``free``), in
