@@ -185,19 +185,14 @@ class ConstrainedSystem(eqx.Module):
         the partition changes inside a solve, and XLA's dynamic gathers are slow on CPU)."""
         return _partition_selections(self.free, self.nv, jnp.asarray(x).dtype)[0]
 
-    def dependent_selection(self, x) -> Array:
-        """One-hot rows (s, n) of the dependent quasi-velocities (those not in ``free``), in
-        ascending order; a product, like :meth:`selection`."""
-        return _partition_selections(self.free, self.nv, jnp.asarray(x).dtype)[1]
-
     @compiled_when_eager
     def parametrisation(self, t, q, x) -> tuple[Array, Array, Array]:
         """``(A, K, pivot_ratio)`` with ``[A | K] = (∂ε̃/∂x)⁻¹`` (M.8–M.9).
 
         With ``ε`` chosen by partitioning, ``[E; G]`` is inverted through its ``s × s`` block:
-        with ``x = Eᵀε + Dᵀx_d`` (``D`` the :meth:`dependent_selection`), ``G x = f*`` gives
-        ``x_d = G_d⁻¹ (f* − G_f ε)``, ``G_f = G Eᵀ``, ``G_d = G Dᵀ``, so ``A = Eᵀ − Dᵀ G_d⁻¹ G_f`` and
-        ``K = Dᵀ G_d⁻¹``: an elimination over ``s`` columns instead of ``n`` (a biped's 10 loop rows
+        with ``x = Eᵀε + Dᵀx_d`` (``D``: one-hot rows of the dependent quasi-velocities, ascending),
+        ``G x = f*`` gives ``x_d = G_d⁻¹ (f* − G_f ε)``, ``G_f = G Eᵀ``, ``G_d = G Dᵀ``, so
+        ``A = Eᵀ − Dᵀ G_d⁻¹ G_f`` and ``K = Dᵀ G_d⁻¹``: an elimination over ``s`` columns instead of ``n`` (a biped's 10 loop rows
         among 32 velocities). ``pivot_ratio`` is then the smallest pivot of ``G_d``'s elimination
         over the largest entry of ``[E; G]``, zero when ``free`` repeats or misses an index.
         """
