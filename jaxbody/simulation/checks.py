@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import maggi
+from .._types import Array, Float
 from .._util import compiled_when_eager, is_concrete
 from ..effects import JointDampers, JointSprings
 from ..model import Model
@@ -118,6 +119,17 @@ def batch_member_checks(system, q0, v0) -> None:
     anything is traced further (inside ``jit`` the traced checks apply instead)."""
     if is_concrete(system):
         check_batch_members({"q0": q0, "v0": v0}, prefix="simulate: ")
+
+
+def save_times(t0, t1, n_save: int | None, dtype) -> Float[Array, " n_save"]:
+    """The default save times: ``n_save`` (default 101) equally spaced from ``t0`` to ``t1``,
+    both included. Concrete bounds are spaced in NumPy: each eager JAX operation is an XLA
+    program compiled once per process (and too small for JAX's persistent cache), which a first
+    simulation would otherwise wait for."""
+    n = 101 if n_save is None else n_save
+    if is_concrete(t0, t1):
+        return jnp.asarray(np.linspace(np.asarray(t0, dtype), np.asarray(t1, dtype), n, dtype=dtype), dtype)
+    return jnp.linspace(t0, t1, n, dtype=dtype)
 
 
 def checked_save_times(saveat, t0, t1):

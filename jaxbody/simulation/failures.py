@@ -32,6 +32,8 @@ _COLLAPSE = 1e-7
 # singular solve (which a chart's margins may still explain)
 _CHART = int(np.asarray(result_code(RESULTS.singular_coordinates)))
 _SINGULAR = int(np.asarray(result_code(RESULTS.singular)))
+# the codes of a solve that succeeded (Solution.success), for checks made in NumPy
+_SUCCESS = tuple(int(np.asarray(result_code(item))) for item in (RESULTS.successful, RESULTS.event_occurred))
 
 
 def mark_invalid(sol: Solution, valid, t0) -> Solution:
@@ -126,23 +128,25 @@ def raise_on_failure(sol: Solution, scene=None, t0=None, t1=None) -> Solution:
     the check is a ``lax.cond`` on "any member failed" whose failing branch calls back to the
     host with ``(t_final, q_final, v_final)`` and raises there (JAX re-raises it as its runtime
     error with the same text). The callback sits in a custom JVP, so derivatives pass through."""
-    failed = ~sol.success
     code = result_code(sol.result)
     chart = chart_of(scene)
     # eager solves raise a plain Python error here, with this call's traceback; only a traced
     # one needs the callback
     if is_concrete(code, sol.t_final, sol.q_final, sol.v_final):
-        if bool(np.any(np.asarray(failed))):
+        # Solution.success in NumPy: eager JAX operations would each compile on a first call
+        failed = ~np.isin(np.asarray(code), _SUCCESS)
+        if bool(np.any(failed)):
             why = None
             if scene is not None and np.ndim(code) == 0 and is_concrete(scene, t0, t1):
                 why = diagnose(scene, sol.t_final, sol.q_final, sol.v_final, int(np.asarray(code)),
                                np.asarray(sol.stats["num_steps"]), t0, t1)
             margins = None if chart is None else _chart_margins(chart, sol.q_final)
             raise SimulationError(
-                failure_message(np.asarray(failed), np.asarray(code), np.asarray(sol.t_final),
+                failure_message(failed, np.asarray(code), np.asarray(sol.t_final),
                                 np.asarray(sol.q_final), np.asarray(sol.v_final), why, chart, margins)
             )
         return sol
+    failed = ~sol.success
     # the check is threaded through every array of the solution, so JAX cannot drop it as dead
     # code and no result is used before it has run
     dynamic, static = eqx.partition(sol, eqx.is_array)

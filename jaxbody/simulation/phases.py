@@ -13,7 +13,7 @@ import jax.numpy as jnp
 from .. import maggi
 from ..scene import Phases
 from .._util import is_concrete
-from .checks import scene_constraints
+from .checks import save_times, scene_constraints
 from .partitioning import MAX_RECORDED_REPARTITIONS
 from .solution import RESULTS, Solution, balance_scale, energy_balance
 from .solve import simulate_scene
@@ -58,7 +58,7 @@ def simulate_phases(phases: Phases, q0, v0, t1, *, t0, saveat, n_save, track_wor
     t0 = jnp.asarray(t0, dtype)
     t1 = jnp.asarray(t1, dtype)
     if saveat is None:
-        ts = jnp.linspace(t0, t1, 101 if n_save is None else n_save)
+        ts = save_times(t0, t1, n_save, dtype)
     elif isinstance(saveat, diffrax.SaveAt):
         raise ValueError("simulate: phases save at times; pass saveat as an array or n_save")
     else:

@@ -26,6 +26,7 @@ from .checks import (
     batch_member_checks,
     check_positive,
     checked_save_times,
+    save_times,
     checked_step_sign,
     concrete_constraint_check,
     concrete_value_checks,
@@ -91,7 +92,7 @@ def simulate_scene(
     t0 = jnp.asarray(t0, q0.dtype)
     t1 = jnp.asarray(t1, q0.dtype)
     if saveat is None:
-        saveat = diffrax.SaveAt(ts=jnp.linspace(t0, t1, 101 if n_save is None else n_save))
+        saveat = diffrax.SaveAt(ts=save_times(t0, t1, n_save, q0.dtype))
     elif not isinstance(saveat, diffrax.SaveAt):
         ts = jnp.asarray(saveat, dtype=q0.dtype)
         if ts.ndim != 1:
@@ -167,7 +168,8 @@ def simulate_scene(
         raise ValueError(f"simulate: internal: work slots {work_names} lack {missing}")
     slots = tuple(work_names.index(n) for n in own)
     if track_work and scene.has_energy and work_names:
-        w0 = jnp.zeros((len(work_names),), q0.dtype) if work0 is None else jnp.asarray(work0, q0.dtype)
+        # a host array: an eager jnp.zeros would compile a program of its own
+        w0 = jnp.asarray(np.zeros((len(work_names),), q0.dtype) if work0 is None else work0, q0.dtype)
         y0 = (q0, v0, w0)
     else:
         y0 = (q0, v0)
@@ -188,7 +190,7 @@ def simulate_scene(
             dense, slots, native))
     sol = _solution(integrated, saved, solution_layout(scene))
     yf = integrated[3]
-    w_final = yf[2][-1] if len(yf) == 3 else None
+    w_final = yf[2] if len(yf) == 3 else None
     if correction is not None:
         sol = dataclasses.replace(sol, stats={**sol.stats, "v0_correction": correction})
     sol = dataclasses.replace(sol, **ran_by(scene, solver))
@@ -336,7 +338,7 @@ def integrate(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_ste
 def _integrate(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_steps, adjoint, meter, event, dense, slots,
                native_enabled):
     """The solve: ``(ts, ys, tf, yf, stats, result, repartition_times, interpolation)`` (the saved
-    times and states, the last ones, the statistics and outcome, and the dense interpolation
+    times and states, the final time and state, the statistics and outcome, and the dense interpolation
     where asked). ``native_enabled``: whether a solve may run as one native call
     (:func:`jaxbody.simulation.native_solve.native_solve_enabled`, read by the caller so that it
     keys the compiled program)."""
@@ -377,6 +379,9 @@ def _integrate(scene, y0, t0, t1, valid, solver, controller, dt0, saveat, max_st
     else:
         stats["num_repartitions"], repartition_times, result = _partition_outcome(solver, sol, result)
     interpolation = sol.interpolation if dense and sol is not None else None
+    # the final time and state leave the program as scalars and vectors: indexing its outputs
+    # outside would be eager operations, each compiled on a first call
+    tf, yf = tf[-1], jax.tree.map(lambda leaf: leaf[-1], yf)
     return ts, ys, tf, yf, stats, result, repartition_times, interpolation
 
 
@@ -435,7 +440,7 @@ def _solution(integrated, saved, layout) -> Solution:
     energy, work, drift, energy0, cdrift, reactions = saved
     return Solution(
         t=ts, q=ys[0], v=ys[1], energy=energy, work=work, energy_drift=drift, constraint_drift=cdrift,
-        reactions=reactions, stats=stats, result=result, t_final=tf[-1], q_final=yf[0][-1], v_final=yf[1][-1],
+        reactions=reactions, stats=stats, result=result, t_final=tf, q_final=yf[0], v_final=yf[1],
         layout=layout, interpolation=interpolation, repartition_times=repartition_times, energy0=energy0,
     )
 

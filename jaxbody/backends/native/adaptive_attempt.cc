@@ -5,7 +5,7 @@ static inline V vabs(V x) { return x < T(0) ? -x : x; }
 static inline V vpow(V x, T p) {
   if (p == T(0)) return V{} + T(1);  // diffrax leaves a zero coefficient's factor out
   V r;
-  for (int l = 0; l < W; ++l) r[l] = std::pow(x[l], p);
+  for (int l = 0; l < W; ++l) r[l] = jb_pow(x[l], p);
   return r;
 }
 
@@ -73,7 +73,7 @@ __attribute__((noinline)) static void advance(I active, I moved, V* y, V* u, V* 
       const U r = e / (atol + (ay > ac ? ay : ac) * rtol);
       total += r * r;
     }
-    const U scaled = vsqrt(total) / std::sqrt(T(count));
+    const U scaled = vsqrt(total) / jb_sqrt(T(count));
     I keep = scaled < T(1);
     if (has_dtmin) keep |= at_dtmin;
     U inv = T(1) / scaled;

@@ -10,7 +10,6 @@
 // before renormalisation (`pend`).
 @HELPERS@
 
-#include <memory>
 static void adaptive_vjp_block(const Inputs& in, int64_t b0, int n) {
 @ACCESS@
 @INVARIANT@
@@ -67,7 +66,7 @@ static void adaptive_vjp_block(const Inputs& in, int64_t b0, int n) {
   int64_t total = 0;
   for (int l = 0; l < n; ++l) total = int64_t(taken[l]) > total ? int64_t(taken[l]) : total;
   constexpr int CK = 3 * N + 7, KEPT = 3 * N + 5;
-  std::unique_ptr<V[]> kept(new V[every * KEPT]);
+  Owned<V> kept(every * KEPT);
   U y[N], fs[N], u[N], k[S][N], ys[N], yp[N], Y[S][N], lk[S][N], ly[N], r[N];
   for (int64_t seg = (total - 1) / every; seg >= 0 && total > 0; --seg) {
     const int64_t first = seg * every;

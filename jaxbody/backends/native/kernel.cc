@@ -1,7 +1,36 @@
 
-#include <cmath>
 #include <type_traits>
 @COMMON@
+// libm's functions without <cmath>: its header alone is about half the time of a quick (-O0)
+// build of a small tree's program, and of every build's parsing. sqrt, fabs, atan2 and pow are
+// the compiler's builtins (the same instructions and libm calls std:: makes of them); sincos,
+// a GNU extension with no builtin in every compiler, is declared as glibc declares it.
+extern "C" {
+void sincos(double, double*, double*) noexcept;
+void sincosf(float, float*, float*) noexcept;
+}
+#ifndef INFINITY
+#define INFINITY (__builtin_inff())  // as <math.h> defines it
+#endif
+static inline double jb_sqrt(double x) { return __builtin_sqrt(x); }
+static inline float jb_sqrt(float x) { return __builtin_sqrtf(x); }
+static inline double jb_fabs(double x) { return __builtin_fabs(x); }
+static inline float jb_fabs(float x) { return __builtin_fabsf(x); }
+static inline double jb_atan2(double y, double x) { return __builtin_atan2(y, x); }
+static inline float jb_atan2(float y, float x) { return __builtin_atan2f(y, x); }
+static inline double jb_pow(double x, double p) { return __builtin_pow(x, p); }
+static inline float jb_pow(float x, float p) { return __builtin_powf(x, p); }
+// an owned array of n values (std::unique_ptr<X[]> without <memory>, whose header alone takes
+// about half a second to compile): the reverse sweeps' kept steps
+template <typename X>
+struct Owned {
+  X* data;
+  explicit Owned(int64_t n) : data(new X[n]) {}
+  ~Owned() { delete[] data; }
+  Owned(const Owned&) = delete;
+  Owned& operator=(const Owned&) = delete;
+  X& operator[](int64_t i) { return data[i]; }
+};
 // states per block: one vector register of lanes, VECTOR_BYTES wide (jaxbody.backends.native.BUILDS):
 // scalar code for a single state (a vector build would carry every value in a whole register,
 // and the long derivative programs keep most of them on the stack), 256-bit lanes for small
@@ -16,8 +45,10 @@ typedef IntT I __attribute__((vector_size(sizeof(T) * W)));
 // 512-bit blocks read a batched operand and write a result with one gather or scatter
 // instruction per scalar (lane l: row b0 + l of a row-major (batch, n) array): per-lane loads
 // and stores would cost the same per state in either precision, a larger share of float32's
-// shorter time per state
-#if JB_VECTOR_BYTES == 64 && defined(__AVX512F__)
+// shorter time per state. Only an optimised build: <immintrin.h> is most of a quick build's
+// compile time, and a quick build only serves until its optimised one is ready (per-lane loads
+// and stores read and write the same values)
+#if JB_VECTOR_BYTES == 64 && defined(__AVX512F__) && defined(__OPTIMIZE__)
 #include <immintrin.h>
 #define JB_GATHER 1
 static inline V gather_rows(const float* base, int64_t stride, int n) {
@@ -63,7 +94,7 @@ static inline void sincos_lanes(V x, V& s, V& c, int n) {
 static inline void vsincos(V x, V& s, V& c, int n) {
   {
     bool small = true;
-    for (int l = 0; l < W; ++l) small &= std::fabs(x[l]) < T(1e5);  // false for NaN: libm's NaN
+    for (int l = 0; l < W; ++l) small &= jb_fabs(x[l]) < T(1e5);  // false for NaN: libm's NaN
     if (small) {
       // 1.5 * 2^(mantissa bits): adding it rounds to an integer, held in the low bits
       const T magic = sizeof(T) == 8 ? T(6755399441055744.0) : T(12582912.0f);
@@ -115,12 +146,12 @@ static inline void vsincos(V x, V& s, V& c, int n) {
 // square root and two-argument arc tangent of every lane (the springs of quaternion joints)
 static inline V vsqrt(V x) {
   V r;
-  for (int l = 0; l < W; ++l) r[l] = std::sqrt(x[l]);
+  for (int l = 0; l < W; ++l) r[l] = jb_sqrt(x[l]);
   return r;
 }
 static inline V vatan2(V y, V x) {
   V r;
-  for (int l = 0; l < W; ++l) r[l] = std::atan2(y[l], x[l]);
+  for (int l = 0; l < W; ++l) r[l] = jb_atan2(y[l], x[l]);
   return r;
 }
 

@@ -1,5 +1,4 @@
 @HERMITE@
-#include <memory>
 // The cotangents of the states a kept step saved (`row`: its state, length, times and saves
 // [first, end)): y(θ) = h00 y0 + h01 y1 + h10 k1 + h11 k4 puts them onto the step's start (l0),
 // end (l1) and stage increments (sk1, sk4); a frozen lane saved its state itself. Not inlined:
@@ -52,7 +51,7 @@ static void vjp_block(const Inputs& in, int64_t b0, int n) {
   for (int l = 0; l < n; ++l) total = int64_t(taken[l]) > total ? int64_t(taken[l]) : total;
   constexpr int CK = NS + 3;    // a checkpoint: the state, the step's times, the saves made
   constexpr int KEPT = NS + 5;  // a kept step: its state, length, times and its saves [first, end)
-  std::unique_ptr<V[]> kept(new V[every * KEPT]);
+  Owned<V> kept(every * KEPT);
   for (int64_t seg = (total - 1) / every; seg >= 0 && total > 0; --seg) {
     const int64_t first = seg * every, end = first + every < total ? first + every : total;
     const int64_t at = seg * CK;
