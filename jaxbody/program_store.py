@@ -53,8 +53,10 @@ from .ffi_targets import needed, register, targets
 from .program_fingerprint import TRUSTED, Undescribable, describe, input_aval, is_input, jax_settings
 from .program_fingerprint import fingerprint as _fingerprint
 from .program_outputs import arrays_in, rebuild, skeleton
+from .stored_executables import SUFFIX as EXECUTABLE_SUFFIX
+from .stored_executables import executable_path, load_executable, store_executable
 from .tiered_compilation import ENV_SWITCH as TIERED_SWITCH
-from .tiered_compilation import MARK_SUFFIX, compile_tiered
+from .tiered_compilation import MARK_SUFFIX, compile_once, compile_tiered
 
 __all__ = ["ENV_SWITCH", "FORWARD_MAX_INPUTS", "MAX_BYTES", "TRUSTED", "Undescribable", "call", "call_then", "counts",
            "describe", "enabled", "fingerprint", "forget", "store_dir", "wait"]
@@ -111,7 +113,8 @@ class _Entry:
 
 _entries: dict = {}  # in this process: (function, static structure, input shapes) -> _Entry or None
 # how each call was served in this process (counts)
-_counts = {"loaded": 0, "stored": 0, "declined": 0, "traced": 0, "ahead": 0, "optimised": 0, "forward": 0}
+_counts = {"loaded": 0, "stored": 0, "declined": 0, "traced": 0, "ahead": 0, "optimised": 0, "forward": 0,
+           "executable": 0}
 _compiled: dict = {}  # id of an _Entry -> (the entry, its executable: _executable)
 _calls: dict = {}  # id of an _Entry -> (the entry, its jitted call: _jitted)
 _lock = threading.Lock()  # the two dicts above, written by call_then's background thread too
@@ -130,7 +133,9 @@ def counts() -> dict:
     (switched off, or traced arguments); ``ahead``: programs compiled in a background thread
     while another ran (:func:`call_then`); ``optimised``: programs whose optimised compile,
     made in the background, replaced a quick first one (:mod:`jaxbody.tiered_compilation`);
-    ``forward``: derivatives taken in forward mode (see the module docstring)."""
+    ``forward``: derivatives taken in forward mode (see the module docstring); ``executable``:
+    programs whose optimised executable was loaded as an earlier process kept it
+    (:mod:`jaxbody.stored_executables`)."""
     with _lock:
         return dict(_counts)
 
@@ -483,7 +488,7 @@ def _jitted(entry: "_Entry"):
         return _calls[id(entry)][1]
 
 
-def _executable(entry: "_Entry", specs) -> tuple:
+def _executable(entry: "_Entry", specs, once: bool = False) -> tuple:
     """``(executable, compiled now)``: ``entry``'s program compiled for the inputs ``specs``
     (once per entry in a process). Compiled from the shapes alone, in the thread that prepares
     it ahead and in the call that needs it alike: the same XLA program whichever did, so that
@@ -491,17 +496,33 @@ def _executable(entry: "_Entry", specs) -> tuple:
     the arrays themselves would key the program by where each array is placed, too). A program
     not yet compiled optimised on this machine is compiled quickly first, and its optimised
     executable replaces the quick one when a background thread has compiled it
-    (:func:`jaxbody.tiered_compilation.compile_tiered`)."""
+    (:func:`jaxbody.tiered_compilation.compile_tiered`). The optimised executable is kept
+    beside the stored program and a later process loads it as it is
+    (:mod:`jaxbody.stored_executables`). ``once``: a program that runs about once per system
+    (:func:`call`), compiled quickly and kept so (:func:`jaxbody.tiered_compilation.compile_once`)."""
     with _lock:
         if id(entry) in _compiled:
             return _compiled[id(entry)][1], False
 
-    def install(optimised):  # the optimised program, compiled in the background, runs from now on
-        with _lock:
-            _compiled[id(entry)] = (entry, optimised)
-        _count("optimised")
+    # the executable an earlier process kept: no lowering, no compile
+    kept = executable_path(entry.path, "quick" if once else "")
 
-    compiled = compile_tiered(_jitted(entry).lower(*specs), entry.path, install, _start)
+    def keep(executable):
+        if store_executable(kept, executable):
+            _bound(kept.parent)
+
+    compiled = load_executable(kept)
+    if compiled is not None:
+        _count("executable")
+    elif once:
+        compiled = compile_once(_jitted(entry).lower(*specs), keep)
+    else:
+        def install(optimised):  # the optimised program, compiled in the background, runs from now on
+            with _lock:
+                _compiled[id(entry)] = (entry, optimised)
+            _count("optimised")
+
+        compiled = compile_tiered(_jitted(entry).lower(*specs), entry.path, install, _start, keep)
     with _lock:
         if id(entry) in _compiled:  # another thread compiled it meanwhile
             return _compiled[id(entry)][1], False
@@ -509,11 +530,11 @@ def _executable(entry: "_Entry", specs) -> tuple:
     return compiled, True
 
 
-def _run_entry(entry: "_Entry", inputs: list, specs):
+def _run_entry(entry: "_Entry", inputs: list, specs, once: bool = False):
     """``entry``'s program on concrete ``inputs`` of shapes ``specs``, by its executable
-    (:func:`_executable`); inputs typed unlike the shapes it was compiled for go through its
-    jitted call instead."""
-    executable = _executable(entry, specs)[0]
+    (:func:`_executable`, ``once`` as there); inputs typed unlike the shapes it was compiled for
+    go through its jitted call instead."""
+    executable = _executable(entry, specs, once)[0]
     try:
         return executable(*inputs)
     except (TypeError, ValueError):
@@ -568,7 +589,9 @@ def _bound(directory: Path) -> None:
     try:
         entries = []
         for entry in os.scandir(directory):
-            if entry.name.endswith(".pickle"):
+            # programs and their machines' executables, each removed on its own (an executable
+            # stays valid for its program, which is traced and stored again under the same name)
+            if entry.name.endswith((".pickle", EXECUTABLE_SUFFIX)):
                 stat = entry.stat()
                 entries.append((stat.st_mtime, stat.st_size, entry.path))
     except OSError:
@@ -597,14 +620,15 @@ def _local_key(name, leaves, treedef, static_part):
     return key
 
 
-def call(fn, args: tuple, name: str, forward_args: tuple | None = None):
+def call(fn, args: tuple, name: str, forward_args: tuple | None = None, once: bool = False):
     """``fn(*args)``, as the program stored for it where there is one (see the module
     docstring), else traced, stored and run; as ``fn(*args)`` itself where the arguments are
     traced, cannot be fingerprinted, or the program cannot be exported. ``fn`` must be a pure
     function of ``args`` whose outputs are arrays in tuples, lists, dicts and dataclasses;
     ``name`` tells its programs apart from other functions'. ``forward_args``: arguments with
     the same input arrays under which ``fn`` computes the same outputs and can be differentiated
-    in forward mode (``None``: derivatives in reverse mode only)."""
+    in forward mode (``None``: derivatives in reverse mode only). ``once``: a program that runs
+    about once per system (a check of its inputs), compiled quickly and never optimised."""
     if not enabled():
         return _traced(fn, args)
     dynamic, static_part = eqx.partition(args, is_input)
@@ -627,7 +651,7 @@ def call(fn, args: tuple, name: str, forward_args: tuple | None = None):
     if primal is None or not _registered(primal):
         return _traced(fn, args)
     if not any(mask):
-        outputs = _run_entry(primal, list(leaves), _specs(leaves))
+        outputs = _run_entry(primal, list(leaves), _specs(leaves), once)
     else:
         outputs = _differentiated(fn, args, name, primal, leaves, treedef, static_part, mask)
     return rebuild(primal.outputs, iter(outputs))

@@ -41,9 +41,10 @@ from pathlib import Path
 import jax
 
 from .cxx import LEVEL_SWITCH
+from .stored_executables import compile_fresh
 
 __all__ = ["BACKGROUND_NICENESS", "ENV_SWITCH", "MARK_SUFFIX", "OPTIMISED_OPTIONS", "QUICK_NATIVE_LEVEL",
-           "QUICK_OPTIONS", "compile_tiered", "enabled", "native_enabled"]
+           "QUICK_OPTIONS", "compile_once", "compile_tiered", "enabled", "native_enabled"]
 
 #: The environment variable that turns tiered compilation off (``0``, ``off``, ``false``, ``no``).
 ENV_SWITCH = "JAXBODY_TIERED_COMPILE"
@@ -102,19 +103,28 @@ def _marker(path: Path | None) -> Path | None:
     return path.with_name(path.name + MARK_SUFFIX)
 
 
-def compile_tiered(lowered, path: Path | None, install: Callable, start: Callable):
+def compile_tiered(lowered, path: Path | None, install: Callable, start: Callable, keep: Callable | None = None):
     """The executable of ``lowered`` (a :class:`jax.stages.Lowered`) to run now.
 
     ``path``: the file the program is stored in (its marker goes beside it); ``install``: called
     from the background thread with the optimised executable once compiled; ``start``: runs a
-    function in a background thread (``start(work, name)``) that the interpreter joins at exit.
+    function in a background thread (``start(work, name)``) that the interpreter joins at exit;
+    ``keep``: called with every optimised executable XLA compiles, here or in the background (not
+    one loaded from JAX's cache): the program store keeps it (:mod:`jaxbody.stored_executables`).
     Where tiering is off (XLA's default options), or the marker says the optimised program is in
     JAX's cache, the optimised program is compiled (loaded) here and ``install`` is not called."""
+
+    def optimised(**options):
+        executable, fresh = compile_fresh(lambda: lowered.compile(**options))
+        if fresh and keep is not None:
+            keep(executable)
+        return executable
+
     if not enabled():
-        return lowered.compile()
+        return optimised()
     marker = _marker(path)
     if marker is not None and marker.exists():
-        return lowered.compile(compiler_options=OPTIMISED_OPTIONS)  # as the earlier process compiled it
+        return optimised(compiler_options=OPTIMISED_OPTIONS)  # as the earlier process compiled it
     quick = lowered.compile(compiler_options=QUICK_OPTIONS)
 
     def work():
@@ -124,10 +134,10 @@ def compile_tiered(lowered, path: Path | None, install: Callable, start: Callabl
             pass
         try:
             with _running:
-                optimised = lowered.compile(compiler_options=OPTIMISED_OPTIONS)
+                executable = optimised(compiler_options=OPTIMISED_OPTIONS)
         except Exception:  # noqa: BLE001 (the quick program keeps running; it is the same program)
             return
-        install(optimised)
+        install(executable)
         if marker is not None:
             try:
                 marker.touch()
@@ -136,3 +146,15 @@ def compile_tiered(lowered, path: Path | None, install: Callable, start: Callabl
 
     start(work, "jaxbody-optimised-compile")
     return quick
+
+
+def compile_once(lowered, keep: Callable | None = None):
+    """The executable of ``lowered`` for a program that runs about once per system (a check of
+    its inputs): compiled quickly where tiering is on, with no optimised compile after it (there
+    are no later calls for the optimiser to speed up), with XLA's defaults where it is off.
+    ``keep``: as :func:`compile_tiered`'s, called with the executable where XLA compiled it."""
+    options = {"compiler_options": QUICK_OPTIONS} if enabled() else {}
+    executable, fresh = compile_fresh(lambda: lowered.compile(**options))
+    if fresh and keep is not None:
+        keep(executable)
+    return executable

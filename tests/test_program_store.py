@@ -38,14 +38,14 @@ def _primal_files(store):
             if not p.name.startswith(("simulate-reverse-", "simulate-forward-"))]
 
 
-def _arm(gain_offset=0.0):
+def _arm(gain_offset=0.0, target=(0.3, -0.2)):
     """A two-link arm under a PD law that closes over an array (the target)."""
     b = jb.ModelBuilder()
     b.add_body("upper", mass=1.0, com=(0.0, 0.0, -0.25), inertia=(0.01, 0.01, 0.001), joints=[jb.Hinge(axis=(0, 1, 0))])
     b.add_body("lower", "upper", pos=(0, 0, -0.5), mass=0.7, com=(0.0, 0.0, -0.2), inertia=(0.008, 0.008, 0.001),
                joints=[jb.Hinge(axis=(0, 1, 0))])
     model = b.build()
-    target = jnp.asarray([0.3, -0.2])
+    target = jnp.asarray(target)
 
     def pd(t, q, v, gains):
         return (gains[0] + gain_offset) * (target - q) - gains[1] * v
@@ -255,6 +255,9 @@ def test_damaged_entry_is_traced_and_stored_again(store):
 
 
 def test_the_store_is_bounded_least_recently_used_first(store, monkeypatch):
+    # programs only: whether an executable is kept beside them depends on what JAX's cache
+    # already holds (test_an_optimised_executable_is_kept_and_loaded bounds those)
+    monkeypatch.setattr(program_store, "store_executable", lambda path, compiled: False)
     model, pd = _arm()
     q0 = jnp.asarray([0.4, 0.1])
     scene = jb.scene(model, actuation=(pd, jnp.asarray([8.0, 1.0])))
@@ -263,10 +266,100 @@ def test_the_store_is_bounded_least_recently_used_first(store, monkeypatch):
     os.utime(first, (1.0, 1.0))  # long unused
     # room for the programs there are and one byte: storing another solve removes the least
     # recently used first
-    monkeypatch.setattr(program_store, "MAX_BYTES", sum(p.stat().st_size for p in store.glob("*.pickle")) + 1)
+    monkeypatch.setattr(program_store, "MAX_BYTES", _stored_bytes(store) + 1)
     jb.simulate(scene, q0, jnp.zeros(2), 0.25, n_save=5)
     assert not first.exists() and _primal_files(store)
-    assert sum(p.stat().st_size for p in store.glob("*.pickle")) <= program_store.MAX_BYTES
+    assert _stored_bytes(store) <= program_store.MAX_BYTES
+
+
+def test_an_optimised_executable_is_kept_and_loaded(store, monkeypatch):
+    # a PD target no earlier program had (it is a constant of the program): JAX's persistent
+    # cache cannot serve the optimised compile, whose executable is then kept
+    model, pd = _arm(target=(0.3, -0.2 + 1e-9 * (uuid.uuid4().int % 1000)))
+    scene = jb.scene(model, actuation=(pd, jnp.asarray([8.0, 1.0])))
+    q0, v0 = jnp.asarray([0.4, 0.1]), jnp.zeros(2)
+    sol = jb.simulate(scene, q0, v0, 0.5)
+    program_store.wait()  # the optimised compile may run in the background
+    # the solve's (the saved states' program has no PD law: an earlier test may have compiled it)
+    kept = sorted(p.name.split("-")[0] for p in store.glob("*.xla"))
+    assert "simulate" in kept and set(kept) <= {"saved", "simulate"}
+    # a later process (here: this one, its memory forgotten) loads them without lowering
+    program_store.forget()
+    before = program_store.counts()
+    again = jb.simulate(scene, q0, v0, 0.5)
+    assert program_store.counts()["executable"] - before["executable"] == len(kept)
+    # the first call may have run the quickly compiled program: the last bits may differ
+    np.testing.assert_allclose(again.q, sol.q, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(again.energy, sol.energy, rtol=1e-10, atol=1e-12)
+    # a damaged executable is ignored: compiled (or loaded from JAX's cache) as before
+    for path in store.glob("*.xla"):
+        path.write_bytes(b"not an executable")
+    program_store.forget()
+    before = program_store.counts()
+    np.testing.assert_allclose(jb.simulate(scene, q0, v0, 0.5).q, sol.q, rtol=1e-10, atol=1e-12)
+    assert program_store.counts()["executable"] == before["executable"]
+    # executables count against the store's bound, the least recently used removed first
+    program_store.wait()
+    monkeypatch.setattr(program_store, "MAX_BYTES", 1)
+    jb.simulate(scene, q0, v0, 0.25, n_save=5)
+    assert _stored_bytes(store) <= 1
+
+
+def test_the_initial_constraint_check_is_a_stored_program_compiled_once(store):
+    # a loop closed by an MJCF <connect>: a solve first checks its initial state against the
+    # loop's rows, a program of its own that runs once per solve, stored and kept compiled
+    # quickly, so that a later process neither traces nor lowers nor compiles it
+    import warnings
+
+    from test_constraints import four_bar_angles, four_bar_mjcf
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = jb.from_mjcf(four_bar_mjcf(four_bar_angles(0.6)))
+    scene = jb.scene(model)
+    q0, v0 = model.qpos0, jnp.zeros(model.nv)
+    sol = jb.simulate(scene, q0, v0, 0.2)
+    (checked,) = store.glob("constraint_residual-*.pickle")
+    program_store.forget()
+    before = program_store.counts()
+    again = jb.simulate(scene, q0, v0, 0.2)
+    np.testing.assert_allclose(again.q, sol.q, rtol=1e-10, atol=1e-12)
+    # each run of the suite has a JAX cache of its own (conftest), where no other test compiles
+    # this program: it was compiled here and kept (a cache kept across runs may serve it instead)
+    if os.path.basename(os.environ.get("JAX_COMPILATION_CACHE_DIR", "")).startswith("jaxbody-test-jax-cache-"):
+        assert len(list(store.glob("constraint_residual-*.quick.xla"))) == 1
+        assert program_store.counts()["executable"] - before["executable"] >= 1
+    # the stored check still names the rows an initial state violates
+    with pytest.raises(ValueError, match=r"q0: initial positions violate the constraints \['loop"):
+        jb.simulate(scene, q0.at[0].add(0.3), v0, 0.2)
+
+
+def test_an_executable_loaded_from_jax_cache_is_not_kept():
+    # a copy JAX's serialiser writes of a cache-loaded executable lacks its machine code:
+    # compile_fresh tells a compile from a load, by JAX's cache-hit events
+    from jaxbody.stored_executables import compile_fresh
+
+    threshold = jax.config.jax_persistent_cache_min_compile_time_secs
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    try:
+        offset = float(uuid.uuid4().int % 1000)  # a program no earlier run compiled
+
+        def f(x):
+            return jnp.sin(x) * 2.0 + offset
+
+        x = jax.ShapeDtypeStruct((3,), jnp.float64)
+        first, fresh = compile_fresh(lambda: jax.jit(f).lower(x).compile())
+        jax.clear_caches()  # as a later process: nothing compiled in memory
+        second, again = compile_fresh(lambda: jax.jit(f).lower(x).compile())
+    finally:
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", threshold)
+    assert fresh and not again
+    np.testing.assert_array_equal(second(jnp.ones(3)), first(jnp.ones(3)))
+
+
+def _stored_bytes(store):
+    """Bytes of the programs and executables in ``store`` (what its bound counts)."""
+    return sum(p.stat().st_size for p in store.iterdir() if p.name.endswith((".pickle", ".xla")))
 
 
 def test_a_program_with_a_host_callback_is_traced(store):

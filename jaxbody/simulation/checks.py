@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import maggi
+from .. import maggi, program_store
 from .._types import Array, Float
 from .._util import compiled_when_eager, is_concrete
 from ..effects import JointDampers, JointSprings
@@ -230,7 +230,8 @@ def concrete_constraint_check(cs, t0, q0, v0, project_initial):
     ``correction`` is the velocity projection's change (``None`` without ``project_initial``)."""
     # the admissible case (the usual one) is decided by one compiled residual; otherwise
     # jaxbody.maggi.initial_state names the rows at fault or projects
-    phi, f = (np.asarray(x) for x in _residual(cs, t0, q0, v0))
+    # a stored program (a later process loads its executable instead of tracing and lowering it)
+    phi, f = (np.asarray(x) for x in program_store.call(_residual, (cs, t0, q0, v0), "constraint_residual", once=True))
     q_atol, v_atol = admissible(Q0_ATOL, q0.dtype), admissible(V0_ATOL, v0.dtype)
     off = np.flatnonzero(np.abs(phi) > q_atol)
     if off.size and not project_initial:
