@@ -504,8 +504,9 @@ def _executable(entry: "_Entry", specs, once: bool = False) -> tuple:
         if id(entry) in _compiled:
             return _compiled[id(entry)][1], False
 
-    # the executable an earlier process kept: no lowering, no compile
-    kept = executable_path(entry.path, "quick" if once else "")
+    # the executable an earlier process kept: no lowering, no compile. Not for programs that
+    # call jaxbody's native code: deserialised, those crashed when run (JAX's cache loads them)
+    kept = None if entry.notes else executable_path(entry.path, "quick" if once else "")
 
     def keep(executable):
         if store_executable(kept, executable):

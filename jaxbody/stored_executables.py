@@ -13,7 +13,12 @@ holds a hash of the JAX and jaxlib versions, the backend and its version, the pr
 instruction set (:func:`jaxbody.cxx.cpu_signature`) and ``$XLA_FLAGS``, so a cache directory
 shared between different machines keeps one executable per kind of machine. The program's own
 key (everything its trace is a function of) is the stored program's file name. Only on the CPU:
-executables compiled for accelerators are left to JAX's cache, where they were measured.
+executables compiled for accelerators are left to JAX's cache, where they were measured. Not
+for programs that call jaxbody's native kernel or other FFI targets either: with jaxlib 0.10.2
+such an executable, serialised so and loaded in another process, crashed the process when it
+ran (JAX's own cache, which deserialises with the compile options, loads them correctly), so
+the program store keeps executables of programs without FFI calls only: the vectorised and
+unrolled kernels' solves (the Cassie-like biped's among them) and their checks.
 
 Only an executable XLA compiled in this process is kept: one JAX loaded from its own cache
 cannot be serialised again (what JAX's serialiser writes of it lacks its machine code, and the
