@@ -2,11 +2,13 @@
 
 A later process runs a stored program (:mod:`jaxbody.program_store`) without tracing it, and
 JAX's persistent compilation cache spares it XLA's compile. To find the compiled program in that
-cache, JAX still lowers the program again and hashes the result: for the Cassie-like biped's
-constrained solve and its saved states, about a quarter of a second of a warm first call that
-takes a little over one (``benchmarks/first_call.py --cases cassie``). The optimised executable
-XLA compiled is therefore serialised beside the stored program (``PROGRAM.pickle.MACHINE.xla``)
-and a later process loads it directly.
+cache, JAX still lowers the program again and hashes the result, a large part of a warm first
+call for the largest programs (a constrained solve and its saved states). The optimised
+executable XLA compiled is therefore serialised beside the stored program
+(``PROGRAM.pickle.MACHINE.xla``) and a later process loads it directly: with the initial
+constraint check stored too, the Cassie-like biped's first simulation in a warm process went
+from 1.5 to 1.1 s (``benchmarks/first_call.py --cases cassie --cassie jaxbody/models/cassie_like.xml
+--baseline DIR``, on a slow hour of a 2-core machine).
 
 An executable is machine code for one processor, one XLA and one set of flags: its file name
 holds a hash of the JAX and jaxlib versions, the backend and its version, the processor's

@@ -394,3 +394,26 @@ def test_the_compiled_solve_has_no_host_callback_and_the_checks_stay_outside():
     with pytest.raises(Exception, match="saveat.ts must be increasing or decreasing"):
         diffrax.diffeqsolve(diffrax.ODETerm(lambda t, y, args: -y), diffrax.Tsit5(), 0.0, 1.0, 0.1, jnp.array(1.0),
                             saveat=diffrax.SaveAt(ts=jnp.array([0.5, 0.2])))
+
+
+def test_default_save_times_are_spaced_on_the_host_when_concrete():
+    # concrete bounds: NumPy's spacing, both ends exact, and no JAX operation (each would be a
+    # program compiled on a process's first call); traced bounds: the same times in the program
+    from jaxbody.simulation.checks import save_times
+
+    def count_compiles(fn):
+        compiled = []
+        jax.monitoring.register_event_duration_secs_listener(
+            lambda name, secs, **_: compiled.append(name) if name == "/jax/core/compile/backend_compile_duration" else None)
+        out = fn()
+        return out, len(compiled)
+
+    # a count of steps no other test asks for: JAX's own in-memory caches cannot hide a compile
+    n = 37
+    ts, compiles = count_compiles(lambda: save_times(jnp.asarray(0.3), jnp.asarray(2.1), n, np.float64))
+    assert compiles == 0
+    np.testing.assert_array_equal(np.asarray(ts), np.linspace(0.3, 2.1, n))
+    assert ts.dtype == jnp.float64 and float(ts[0]) == 0.3 and float(ts[-1]) == 2.1
+    traced = jax.jit(lambda a, b: save_times(a, b, n, np.float64))(0.3, 2.1)
+    np.testing.assert_allclose(np.asarray(traced), np.linspace(0.3, 2.1, n), rtol=0, atol=1e-15)
+    assert len(save_times(0.0, 1.0, None, np.float32)) == 101

@@ -5,7 +5,14 @@ dynamics (``fd``), its forward-mode derivative (``jvp``) and its reverse-mode de
 (``vjp``) — and compiles each with the flags the kernel uses, into a fresh cache directory
 (nothing reused), recording the generated lines and the compile time:
 
-    .venv/bin/python benchmarks/kernels.py build [--models panda,chain7,chain12,chain20]
+    .venv/bin/python benchmarks/kernels.py build [--models panda,chain7,chain12,chain20] [--modes fd,jvp,vjp]
+        [--level=-O0] [--build one|narrow|wide]
+
+``--level`` compiles at another optimisation level than the kernel's default (``-O0``: the
+quick build a first call runs while the optimised one builds in the background) and
+``--build`` another of the builds (``jaxbody.backends.native.BUILDS``: one state, 256-bit or
+512-bit lanes). Another checkout's generator is timed by running this script with
+``PYTHONPATH`` set to it (its ``jaxbody`` is imported first).
 
 This is a one-time cost per tree (the libraries are cached in ``$JAXBODY_CACHE_DIR``); it is
 what sets :data:`jaxbody.backends.native.MAX_MASS_ENTRIES` and :data:`jaxbody.backends.native.MAX_DERIVATIVE_DOFS`.
@@ -29,6 +36,8 @@ def main(argv=None):
     p = argparse.ArgumentParser(prog="kernels.py build", description=__doc__.splitlines()[0])
     p.add_argument("--models", default="panda,chain7,chain12,chain20", help="robots of jaxbody/models or chainN")
     p.add_argument("--modes", default="fd,jvp,vjp", help="comma-separated subset of native.MODES (fd, jvp, vjp, rk4, rk4_jvp, rk4_vjp)")
+    p.add_argument("--level", help="optimisation level (-O0 ... -O3; default: the kernel's)")
+    p.add_argument("--build", default="narrow", help="one, narrow or wide (jaxbody.backends.native.BUILDS)")
     p.add_argument("--out", default=str(RESULTS))
     p.add_argument("--name", default="native_build")
     args = p.parse_args(argv)
@@ -52,14 +61,16 @@ def main(argv=None):
                 warnings.simplefilter("ignore")
                 model = jb.from_mjcf(str(path))
             for mode in args.modes.split(","):
-                # the 256-bit-lane build (small batches; single states and batches of
+                # by default the 256-bit-lane build (small batches; single states and batches of
                 # native.WIDE_BATCH and more get other builds of the same source: native.BUILDS)
                 source = native.codegen.generate(model.tree, model.joints, False, np.float64, mode).replace(
-                    "@VECTOR_BYTES@", native.BUILDS["narrow"])
+                    "@VECTOR_BYTES@", native.BUILDS[args.build])
                 t = time.perf_counter()
-                native.build.build_library(source, f"probe_{mode}")
+                native.build.build_library(source, f"probe_{mode}", flags=native.build.compiler_flags(args.level))
                 seconds = time.perf_counter() - t
-                row = {"model": name, "nv": int(model.nv), "program": mode, "lines": source.count("\n"), "compile_s": seconds}
+                row = {"model": name, "nv": int(model.nv), "program": mode, "lines": source.count("\n"), "compile_s": seconds,
+                       "level": args.level or native.build.compiler_flags()[0], "build": args.build,
+                       "jaxbody": str(pathlib.Path(jb.__file__).parent)}
                 rec["rows"].append(row)
                 print(f"{name:10s} nv={model.nv:3d} {mode:4s} {row['lines']:7d} lines {seconds:7.1f} s", flush=True)
 
@@ -67,7 +78,8 @@ def main(argv=None):
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / f"{args.name}.json").write_text(json.dumps(rec, indent=1))
-    rows = [(r["model"], r["nv"], r["program"], r["lines"], f"{r['compile_s']:.1f}") for r in rec["rows"]]
+    rows = [(r["model"], r["nv"], r["program"], r["level"], r["build"], r["lines"], f"{r['compile_s']:.2f}")
+            for r in rec["rows"]]
     md = [
         "# Building the native kernel: generated lines and compile time per program",
         "",
@@ -77,7 +89,9 @@ def main(argv=None):
         "kernel's flags (`jaxbody.backends.native.build.compiler_flags()`); `fd` is built on a tree's first use, `jvp`/`vjp` "
         "on its first derivative (trees up to `MAX_DERIVATIVE_DOFS`).",
         "",
-        markdown_table(["model", "nv", "program", "lines", "compile s"], rows),
+        f"jaxbody: `{rec['rows'][0]['jaxbody']}`." if rec["rows"] else "",
+        "",
+        markdown_table(["model", "nv", "program", "level", "build", "lines", "compile s"], rows),
         "",
     ]
     (out / f"{args.name}.md").write_text("\n".join(md))
