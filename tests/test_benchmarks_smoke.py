@@ -221,6 +221,15 @@ def test_native_build_smoke(tmp_path):
     assert fd["nv"] == 2 and all(r["compile_s"] > 0 for r in rec["rows"])
     assert jvp["lines"] > fd["lines"] and vjp["lines"] > fd["lines"]  # the derivative programs contain the forward one
     assert "| chain2 | 2 | vjp |" in (tmp_path / "rec.md").read_text()
+    # the kernel's own level ($JAXBODY_NATIVE_OPTIMISATION, which the suite sets) and build
+    assert fd["level"] == os.environ.get("JAXBODY_NATIVE_OPTIMISATION", "-O2") and fd["build"] == "narrow"
+    # another optimisation level and build: the quick build of a single state
+    cmd = [sys.executable, str(BENCH / "kernels.py"), "build", "--models", "chain2", "--modes", "fd", "--level=-O0",
+           "--build", "one", "--out", str(tmp_path), "--name", "quick"]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env, cwd=REPO)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    (row,) = json.loads((tmp_path / "quick.json").read_text())["rows"]
+    assert (row["program"], row["level"], row["build"]) == ("fd", "-O0", "one") and row["compile_s"] > 0
 
 
 @pytest.mark.slow  # builds the Panda arm's RK4 step for batches and for single states
