@@ -38,6 +38,8 @@ def main(argv=None):
     p.add_argument("--modes", default="fd,jvp,vjp", help="comma-separated subset of native.MODES (fd, jvp, vjp, rk4, rk4_jvp, rk4_vjp)")
     p.add_argument("--level", help="optimisation level (-O0 ... -O3; default: the kernel's)")
     p.add_argument("--build", default="narrow", help="one, narrow or wide (jaxbody.backends.native.BUILDS)")
+    p.add_argument("--handler", action="store_true",
+                   help="also time the tree-independent handler library (float64, the kernel's own flags)")
     p.add_argument("--out", default=str(RESULTS))
     p.add_argument("--name", default="native_build")
     args = p.parse_args(argv)
@@ -73,6 +75,15 @@ def main(argv=None):
                        "jaxbody": str(pathlib.Path(jb.__file__).parent)}
                 rec["rows"].append(row)
                 print(f"{name:10s} nv={model.nv:3d} {mode:4s} {row['lines']:7d} lines {seconds:7.1f} s", flush=True)
+
+        if args.handler:
+            # built once per machine and dtype, on a new user's first native call
+            t = time.perf_counter()
+            native.build.handler_library(np.float64)
+            rec["rows"].append({"model": "(any)", "nv": 0, "program": "handler", "lines": 0,
+                                "compile_s": time.perf_counter() - t, "level": native.build.compiler_flags()[0],
+                                "build": "-", "jaxbody": str(pathlib.Path(jb.__file__).parent)})
+            print(f"handler {rec['rows'][-1]['compile_s']:7.2f} s", flush=True)
 
     rec["stamp"]["load_average_end"] = load_average()
     out = pathlib.Path(args.out)

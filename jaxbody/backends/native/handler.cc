@@ -1,12 +1,13 @@
 
 #include <atomic>
-#include <chrono>
-#include <condition_variable>
-#include <mutex>
-#include <thread>
-#include <unordered_map>
-#include <vector>
+#include <pthread.h>
+#include <sched.h>
+#include <stdlib.h>
 #include <string.h>
+#include <time.h>
+// POSIX threads, mutexes and condition variables rather than <thread>, <mutex>,
+// <condition_variable> and <unordered_map>: those headers were more than half of this file's
+// build, which a new user's first call waits for
 // XLA's C API alone: its C++ binding (ffi.h) takes about a second and a half to compile, this
 // whole file a fraction of that, and the handler is built on a new user's first call
 #include "xla/ffi/api/c_api.h"
@@ -21,23 +22,40 @@ constexpr XLA_FFI_DataType DT = @DT@;
 // the last (the integrator's own work on the batch), and waking a sleeping thread costs as much
 // on a virtual machine. Every worker acknowledges every call, so a call's fields stay valid
 // until all of them have read them.
+// a held mutex, released at the end of its scope
+struct Locked {
+  pthread_mutex_t* m;
+  explicit Locked(pthread_mutex_t* m) : m(m) { pthread_mutex_lock(m); }
+  ~Locked() { pthread_mutex_unlock(m); }
+  Locked(const Locked&) = delete;
+  Locked& operator=(const Locked&) = delete;
+};
+
+static inline int64_t monotonic_ns() {
+  timespec now;
+  clock_gettime(CLOCK_MONOTONIC, &now);
+  return int64_t(now.tv_sec) * 1000000000 + now.tv_nsec;
+}
+
 class Pool {
  public:
   void run(Range range, const Inputs* in, int64_t batch, int64_t threads) {
-    std::lock_guard<std::mutex> call(call_);  // one batch at a time (XLA may call from several devices)
+    Locked call(&call_);  // one batch at a time (XLA may call from several devices)
     grow(threads - 1);
+    if (threads > workers_ + 1) threads = workers_ + 1;  // a worker could not be started
     const int64_t chunk = (batch + threads - 1) / threads;
     range_ = range, in_ = in, batch_ = batch, chunk_ = chunk, slices_ = threads;
-    pending_.store(int64_t(workers_.size()), std::memory_order_relaxed);
+    pending_.store(workers_, std::memory_order_relaxed);
     {
-      std::lock_guard<std::mutex> lock(m_);
+      Locked lock(&m_);
       generation_.fetch_add(1, std::memory_order_release);  // publishes the fields above
     }
-    cv_.notify_all();  // no system call when every worker is spinning
+    pthread_cond_broadcast(&cv_);  // no system call when every worker is spinning
     range(in, 0, chunk < batch ? chunk : batch);
-    if (!spin([&] { return pending_.load(std::memory_order_acquire) == 0; })) {
-      std::unique_lock<std::mutex> lock(m_);
-      done_.wait(lock, [&] { return pending_.load(std::memory_order_acquire) == 0; });
+    auto done = [&] { return pending_.load(std::memory_order_acquire) == 0; };
+    if (!spin(done)) {
+      Locked lock(&m_);
+      while (!done()) pthread_cond_wait(&done_, &m_);
     }
   }
 
@@ -46,7 +64,7 @@ class Pool {
   template <class Ready>
   static bool spin(Ready ready) {
     if (ready()) return true;
-    const auto until = std::chrono::steady_clock::now() + std::chrono::nanoseconds(SPIN_NS);
+    const int64_t until = monotonic_ns() + SPIN_NS;
     for (;;) {
       for (int k = 0; k < 16; ++k) {
         if (ready()) return true;
@@ -54,25 +72,40 @@ class Pool {
         __builtin_ia32_pause();
 #endif
       }
-      if (std::chrono::steady_clock::now() > until) return ready();
-      std::this_thread::yield();  // a core shared with other work gets it back at once
+      if (monotonic_ns() > until) return ready();
+      sched_yield();  // a core shared with other work gets it back at once
     }
   }
+  struct Start {
+    Pool* pool;
+    int64_t slot;
+    uint64_t seen;
+  };
+  static void* start(void* arg) {
+    const Start s = *static_cast<Start*>(arg);
+    delete static_cast<Start*>(arg);
+    s.pool->work(s.slot, s.seen);
+    return nullptr;
+  }
   void grow(int64_t n) {
-    while (int64_t(workers_.size()) < n) {
-      const int64_t slot = int64_t(workers_.size()) + 1;
+    while (workers_ < n) {
       // a new worker starts at the calls made so far: the next one is its first
-      const uint64_t seen = generation_.load(std::memory_order_relaxed);
-      workers_.emplace_back([this, slot, seen] { work(slot, seen); });
-      workers_.back().detach();
+      Start* s = new Start{this, workers_ + 1, generation_.load(std::memory_order_relaxed)};
+      pthread_t thread;
+      if (pthread_create(&thread, nullptr, start, s) != 0) {
+        delete s;
+        return;  // fewer workers: run() cuts the batch into fewer slices
+      }
+      pthread_detach(thread);
+      ++workers_;
     }
   }
   void work(int64_t slot, uint64_t seen) {
     for (;;) {
       auto fresh = [&] { return generation_.load(std::memory_order_acquire) != seen; };
       if (!spin(fresh)) {
-        std::unique_lock<std::mutex> lock(m_);
-        cv_.wait(lock, fresh);
+        Locked lock(&m_);
+        while (!fresh()) pthread_cond_wait(&cv_, &m_);
       }
       seen = generation_.load(std::memory_order_acquire);
       if (slot < slices_) {
@@ -80,14 +113,14 @@ class Pool {
         if (b0 < b1) range_(in_, b0, b1);
       }
       if (pending_.fetch_sub(1, std::memory_order_acq_rel) == 1) {
-        std::lock_guard<std::mutex> lock(m_);  // the caller checks pending_ under m_ before it sleeps
-        done_.notify_one();
+        Locked lock(&m_);  // the caller checks pending_ under m_ before it sleeps
+        pthread_cond_signal(&done_);
       }
     }
   }
-  std::mutex call_, m_;
-  std::condition_variable cv_, done_;
-  std::vector<std::thread> workers_;
+  pthread_mutex_t call_ = PTHREAD_MUTEX_INITIALIZER, m_ = PTHREAD_MUTEX_INITIALIZER;
+  pthread_cond_t cv_ = PTHREAD_COND_INITIALIZER, done_ = PTHREAD_COND_INITIALIZER;
+  int64_t workers_ = 0;  // detached worker threads started (they run until the process ends)
   Range range_ = nullptr;
   const Inputs* in_ = nullptr;
   int64_t batch_ = 0, chunk_ = 0, slices_ = 0;
@@ -106,16 +139,37 @@ static Pool* pool() {
 // another process, must find this process's copy of the same program (and never another's).
 // A key is registered again when a program's optimised build replaces its quick first one:
 // the generation counts registrations, so that a thread's remembered program is looked up anew.
-static std::mutex registry_m;
+// A process registers tens of programs: a list searched under the lock (a thread's last
+// program is looked up without it) serves as well as a hash map.
+struct Registered {
+  int64_t key;
+  Range range;
+};
+static pthread_mutex_t registry_m = PTHREAD_MUTEX_INITIALIZER;
 static std::atomic<uint64_t> registry_generation{0};
-static std::unordered_map<int64_t, Range>& registry() {
-  static auto* r = new std::unordered_map<int64_t, Range>();
-  return *r;
+static Registered* registry = nullptr;  // never freed: threads may look up until the process ends
+static int64_t registry_size = 0, registry_capacity = 0;
+
+static Registered* find(int64_t key) {  // under registry_m
+  for (int64_t i = 0; i < registry_size; ++i)
+    if (registry[i].key == key) return &registry[i];
+  return nullptr;
 }
 
 extern "C" void jaxbody_register(int64_t key, void* range) {
-  std::lock_guard<std::mutex> lock(registry_m);
-  registry()[key] = reinterpret_cast<Range>(range);
+  Locked lock(&registry_m);
+  Registered* entry = find(key);
+  if (!entry) {
+    if (registry_size == registry_capacity) {
+      const int64_t capacity = registry_capacity ? 2 * registry_capacity : 64;
+      auto* grown = static_cast<Registered*>(realloc(registry, sizeof(Registered) * capacity));
+      if (!grown) return;  // out of memory: the program stays unregistered (its call reports so)
+      registry = grown, registry_capacity = capacity;
+    }
+    entry = &registry[registry_size++];
+    entry->key = key;
+  }
+  entry->range = reinterpret_cast<Range>(range);
   registry_generation.fetch_add(1, std::memory_order_release);
 }
 
@@ -126,10 +180,10 @@ static Range lookup(int64_t key) {
   thread_local uint64_t seen = 0;
   const uint64_t generation = registry_generation.load(std::memory_order_acquire);
   if (key == last_key && last && generation == seen) return last;
-  std::lock_guard<std::mutex> lock(registry_m);
-  auto it = registry().find(key);
-  if (it == registry().end()) return nullptr;
-  last_key = key, last = it->second, seen = generation;
+  Locked lock(&registry_m);
+  const Registered* entry = find(key);
+  if (!entry) return nullptr;
+  last_key = key, last = entry->range, seen = generation;
   return last;
 }
 
