@@ -7,8 +7,8 @@ call for the largest programs (a constrained solve and its saved states). The op
 executable XLA compiled is therefore serialised beside the stored program
 (``PROGRAM.pickle.MACHINE.xla``) and a later process loads it directly: with the initial
 constraint check stored too, the Cassie-like biped's first simulation in a warm process went
-from 1.5 to 1.1 s (``benchmarks/first_call.py --cases cassie --cassie jaxbody/models/cassie_like.xml
---baseline DIR``, on a slow hour of a 2-core machine).
+from 1.2 to 0.9 s (``benchmarks/first_call.py --cases cassie --cassie jaxbody/models/cassie_like.xml
+--baseline DIR``, a 2-core machine).
 
 An executable is machine code for one processor, one XLA and one set of flags: its file name
 holds a hash of the JAX and jaxlib versions, the backend and its version, the processor's
