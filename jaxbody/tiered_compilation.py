@@ -115,10 +115,7 @@ def compile_tiered(lowered, path: Path | None, install: Callable, start: Callabl
     JAX's cache, the optimised program is compiled (loaded) here and ``install`` is not called."""
 
     def optimised(**options):
-        executable, fresh = compile_fresh(lambda: lowered.compile(**options))
-        if fresh and keep is not None:
-            keep(executable)
-        return executable
+        return _compiled_and_kept(lowered, keep, **options)
 
     if not enabled():
         return optimised()
@@ -153,7 +150,12 @@ def compile_once(lowered, keep: Callable | None = None):
     its inputs): compiled quickly where tiering is on, with no optimised compile after it (there
     are no later calls for the optimiser to speed up), with XLA's defaults where it is off.
     ``keep``: as :func:`compile_tiered`'s, called with the executable where XLA compiled it."""
-    options = {"compiler_options": QUICK_OPTIONS} if enabled() else {}
+    return _compiled_and_kept(lowered, keep, **({"compiler_options": QUICK_OPTIONS} if enabled() else {}))
+
+
+def _compiled_and_kept(lowered, keep: Callable | None, **options):
+    """``lowered`` compiled with ``options``; ``keep`` called with the executable where XLA
+    compiled it here (not where JAX loaded it from its cache: such a copy cannot be kept)."""
     executable, fresh = compile_fresh(lambda: lowered.compile(**options))
     if fresh and keep is not None:
         keep(executable)

@@ -22,7 +22,7 @@ from ..dynamics import mass_matrix
 from ..model import Model
 from ..scene import ModelScene
 from ..scene.chart import chart_of
-from .solution import RESULTS, SimulationError, Solution, result_code, result_from_code
+from .solution import RESULTS, SUCCESS_CODES, SimulationError, Solution, result_code, result_from_code
 
 __all__ = ["raise_on_failure", "failure_message", "diagnose", "explain_failure", "mark_invalid"]
 
@@ -32,8 +32,6 @@ _COLLAPSE = 1e-7
 # singular solve (which a chart's margins may still explain)
 _CHART = int(np.asarray(result_code(RESULTS.singular_coordinates)))
 _SINGULAR = int(np.asarray(result_code(RESULTS.singular)))
-# the codes of a solve that succeeded (Solution.success), for checks made in NumPy
-_SUCCESS = tuple(int(np.asarray(result_code(item))) for item in (RESULTS.successful, RESULTS.event_occurred))
 
 
 def mark_invalid(sol: Solution, valid, t0) -> Solution:
@@ -134,7 +132,7 @@ def raise_on_failure(sol: Solution, scene=None, t0=None, t1=None) -> Solution:
     # one needs the callback
     if is_concrete(code, sol.t_final, sol.q_final, sol.v_final):
         # Solution.success in NumPy: eager JAX operations would each compile on a first call
-        failed = ~np.isin(np.asarray(code), _SUCCESS)
+        failed = ~np.isin(np.asarray(code), SUCCESS_CODES)
         if bool(np.any(failed)):
             why = None
             if scene is not None and np.ndim(code) == 0 and is_concrete(scene, t0, t1):

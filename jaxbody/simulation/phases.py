@@ -15,7 +15,7 @@ from ..scene import Phases
 from .._util import is_concrete
 from .checks import save_times, scene_constraints
 from .partitioning import MAX_RECORDED_REPARTITIONS
-from .solution import RESULTS, Solution, balance_scale, energy_balance
+from .solution import RESULTS, Solution, balance_scale, energy_balance, succeeded
 from .solve import simulate_scene
 
 __all__ = ["simulate_phases"]
@@ -159,8 +159,7 @@ def _join_phases(ts, parts, ends, switches, work_names, energetic):
     # the first phase that failed decides the run's result (later phases started from its end)
     result = parts[0].result
     for p in parts[1:]:
-        ok = (result == RESULTS.successful) | (result == RESULTS.event_occurred)
-        result = RESULTS.where(ok, p.result, result)
+        result = RESULTS.where(succeeded(result), p.result, result)
     stats = {k: sum(p.stats[k] for p in parts) for k in ("num_steps", "num_accepted_steps", "num_rejected_steps")}
     stats["phase"] = phase
     stats["num_repartitions"], repartition_times = _joined_repartitions(parts, ends)

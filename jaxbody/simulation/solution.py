@@ -29,6 +29,9 @@ __all__ = [
     "load_solution",
     "result_code",
     "result_from_code",
+    "SUCCESSES",
+    "SUCCESS_CODES",
+    "succeeded",
     "energy_balance",
     "balance_scale",
     "solution_layout",
@@ -111,6 +114,21 @@ def _result_codes(item):
     if isinstance(item, ResultCodes) or not isinstance(item, type(RESULTS.successful)):
         return item
     return jax.tree.unflatten(jax.tree.structure(_RESULT_CODES), jax.tree.leaves(item))
+
+
+#: The outcomes of a solve that succeeded: it reached ``t1``, or a terminating event stopped it
+#: where it was asked to.
+SUCCESSES = (RESULTS.successful, RESULTS.event_occurred)
+#: Their integer codes (:func:`result_code`), for checks made in NumPy on the host.
+SUCCESS_CODES = tuple(int(np.asarray(result_code(item))) for item in SUCCESSES)
+
+
+def succeeded(result) -> Array:
+    """Boolean (per member of a batch): ``result``, a :class:`RESULTS` item, is one of :data:`SUCCESSES`."""
+    ok = result == SUCCESSES[0]
+    for item in SUCCESSES[1:]:
+        ok = ok | (result == item)
+    return ok
 
 
 def result_from_code(code) -> RESULTS:
@@ -265,8 +283,7 @@ class Solution(eqx.Module):
     @property
     def success(self) -> jax.Array:
         """Boolean array: the solve reached ``t1`` or a terminating event (per member when batched)."""
-        # a terminating event is a success: the solve stopped where it was asked to
-        return (self.result == RESULTS.successful) | (self.result == RESULTS.event_occurred)
+        return succeeded(self.result)
 
     @property
     def event_occurred(self) -> jax.Array:
